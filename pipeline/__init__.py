@@ -1,0 +1,1 @@
+"""gopre: goal-oriented active 3D reconstruction (GO-PRE) pipeline."""
