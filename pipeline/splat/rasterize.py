@@ -227,7 +227,6 @@ class _TileComposite(torch.autograd.Function):
             flat = pos.reshape(-1)[keep]
             grad_psi.index_add_(0, flat, d_psi.transpose(1, 2).reshape(-1, 6)[keep])
             grad_feats.index_add_(0, flat, d_f.reshape(-1, f.shape[-1])[keep])
-        del ctx.records
         return grad_psi, grad_feats, None, None, None, None
 
 

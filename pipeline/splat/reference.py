@@ -13,6 +13,7 @@ approximation. The alpha formula and the termination rule are written out here i
 from __future__ import annotations
 
 import torch
+import torch.utils.checkpoint
 from torch import Tensor
 
 
@@ -41,25 +42,39 @@ def _power(means2d: Tensor, conics: Tensor, u: Tensor, v: Tensor) -> Tensor:
 
 
 def rasterize_dense(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                    radii: Tensor, depths: Tensor, width: int, height: int,
-                    tile_size: int = 16) -> tuple[Tensor, Tensor]:
-    """Same contract as ``rasterize.rasterize``: ([H, W, D], [H, W])."""
+                    radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
+                    pixel_block: int | None = None) -> tuple[Tensor, Tensor]:
+    """Same contract as ``rasterize.rasterize``: ([H, W, D], [H, W]).
+
+    ``pixel_block``: if set, pixels are processed in blocks of that many under activation
+    checkpointing (memory of one block, at the price of a second forward in backward).
+    """
     order = torch.argsort(depths.detach(), stable=True)
     means2d, conics, opacities, features, radii = (x[order] for x in
                                                    (means2d, conics, opacities, features, radii))
     u, v = _pixel_centers(width, height, means2d.dtype, means2d.device)
-    power = _power(means2d, conics, u, v)
-    alpha = torch.minimum(opacities[None, :] * torch.exp(power), power.new_tensor(0.99))
-    used = _support(means2d, radii, u, v, tile_size) & (power <= 0) & (alpha >= 1 / 255)
-    alpha = torch.where(used, alpha, torch.zeros_like(alpha))
-    # a pixel stops before the first Gaussian that would take T below 1e-4; later ones are skipped
-    with torch.no_grad():
-        ended = torch.cumprod(1 - alpha, dim=1) < 1e-4
-    alpha = torch.where(ended, torch.zeros_like(alpha), alpha)
-    transmittance = torch.cumprod(1 - alpha, dim=1)
-    before = torch.cat([torch.ones_like(transmittance[:, :1]), transmittance[:, :-1]], dim=1)
-    image = (alpha * before) @ features  # [H*W, D]
-    acc = 1 - transmittance[:, -1]
+
+    def block(u_b: Tensor, v_b: Tensor, means2d, conics, opacities, features):
+        power = _power(means2d, conics, u_b, v_b)
+        alpha = torch.minimum(opacities[None, :] * torch.exp(power), power.new_tensor(0.99))
+        used = _support(means2d, radii, u_b, v_b, tile_size) & (power <= 0) & (alpha >= 1 / 255)
+        alpha = torch.where(used, alpha, torch.zeros_like(alpha))
+        # a pixel stops before the first Gaussian that would take T below 1e-4
+        with torch.no_grad():
+            ended = torch.cumprod(1 - alpha, dim=1) < 1e-4
+        alpha = torch.where(ended, torch.zeros_like(alpha), alpha)
+        transmittance = torch.cumprod(1 - alpha, dim=1)
+        before = torch.cat([torch.ones_like(transmittance[:, :1]), transmittance[:, :-1]], dim=1)
+        return (alpha * before) @ features, 1 - transmittance[:, -1]
+
+    params = (means2d, conics, opacities, features)
+    if pixel_block is None:
+        image, acc = block(u, v, *params)
+    else:
+        parts = [torch.utils.checkpoint.checkpoint(block, u[i:i + pixel_block], v[i:i + pixel_block],
+                                                   *params, use_reentrant=False)
+                 for i in range(0, u.shape[0], pixel_block)]
+        image, acc = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     return image.reshape(height, width, -1), acc.reshape(height, width)
 
 

@@ -36,6 +36,7 @@ class RenderSettings:
     tile_size: int = 16
     chunk: int = 64
     backend: str = "tiles"
+    dense_pixel_block: int | None = None  # dense oracle only: checkpointed pixel blocks
 
 
 def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
@@ -68,6 +69,8 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
         kwargs = {"tile_size": settings.tile_size}
         if settings.backend == "tiles":
             kwargs["chunk"] = settings.chunk
+        elif settings.backend == "dense":
+            kwargs["pixel_block"] = settings.dense_pixel_block
         image, alpha = composite(proj.means2d, proj.conics, proj.opacities, torch.cat(feats, 1),
                                  proj.radii, proj.depths, cams.width, cams.height, **kwargs)
         rgb = image[..., :3] + (1 - alpha)[..., None] * background

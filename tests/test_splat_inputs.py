@@ -1,0 +1,74 @@
+"""Bad input to the splatting core fails with a ValueError that names the argument."""
+
+import pytest
+import torch
+
+from pipeline.cameras import Cameras
+from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat.scenes import orbit_cameras, random_scene
+
+
+def good():
+    return random_scene(10, seed=0)
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("means", torch.zeros(10, 2), "means"),
+    ("log_scales", torch.zeros(9, 3), "log_scales"),
+    ("quats", torch.zeros(10, 3), "quats"),
+    ("logit_opacities", torch.zeros(10, 1), "logit_opacities"),
+    ("sh0", torch.zeros(10, 3), "sh0"),
+    ("shN", torch.zeros(10, 5, 3), "shN"),
+])
+def test_wrong_shapes(field, value, match):
+    params = good().params()
+    params[field] = value
+    with pytest.raises(ValueError, match=match):
+        Gaussians(**params)
+
+
+@pytest.mark.parametrize("field", ["means", "log_scales", "quats", "logit_opacities", "sh0"])
+def test_nan_parameters(field):
+    params = good().params()
+    params[field] = params[field].clone()
+    params[field].view(-1)[0] = float("nan")
+    with pytest.raises(ValueError, match=field):
+        Gaussians(**params)
+
+
+def test_nan_introduced_after_construction_is_caught_by_render():
+    g = good()
+    g.means.data[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="means"):
+        render(g, orbit_cameras(1, 8, 8))
+
+
+def test_non_positive_focal_length():
+    cams = orbit_cameras(1, 8, 8)
+    ks = cams.Ks.clone()
+    ks[0, 0, 0] = 0
+    with pytest.raises(ValueError, match="focal"):
+        Cameras(cams.viewmats, ks, 8, 8)
+
+
+def test_camera_shapes_and_size():
+    cams = orbit_cameras(2, 8, 8)
+    with pytest.raises(ValueError, match="viewmats"):
+        Cameras(cams.viewmats[:, :3], cams.Ks, 8, 8)
+    with pytest.raises(ValueError, match="Ks"):
+        Cameras(cams.viewmats, cams.Ks[:1], 8, 8)
+    with pytest.raises(ValueError, match="width"):
+        Cameras(cams.viewmats, cams.Ks, 0, 8)
+
+
+def test_empty_scene():
+    empty = Gaussians(**{k: v[:0] for k, v in good().params().items()})
+    with pytest.raises(ValueError, match="empty"):
+        render(empty, orbit_cameras(1, 8, 8))
+
+
+def test_bad_background_and_backend():
+    with pytest.raises(ValueError, match="background"):
+        render(good(), orbit_cameras(1, 8, 8), background=torch.zeros(4))
+    with pytest.raises(ValueError, match="backend"):
+        render(good(), orbit_cameras(1, 8, 8), settings=RenderSettings(backend="cuda"))
