@@ -39,8 +39,8 @@ def bench_case(size: int, n: int, repeats: int, seed: int = 0) -> dict:
         block = int(budget_mb * 2 ** 20 / (n * DENSE_BYTES_PER_PAIR * 2))
     if block is None or block >= 256:
         dense_settings = RenderSettings(backend="dense", dense_pixel_block=block)
-        dense = median_seconds(fwd_bwd(gaussians, cams, dense_settings), max(1, repeats // 2),
-                               warmup=0)
+        dense_repeats = 1 if size * size * n > 5e7 else max(1, repeats // 2)  # slow: seconds+
+        dense = median_seconds(fwd_bwd(gaussians, cams, dense_settings), dense_repeats, warmup=0)
     return {"width": size, "height": size, "n_gaussians": n, "fwd_s": round(fwd, 4),
             "fwd_bwd_s": round(fb, 4), "dense_fwd_bwd_s": None if dense is None else round(dense, 4),
             "speedup_vs_dense": None if dense is None else round(dense / fb, 1),

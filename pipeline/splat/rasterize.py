@@ -72,7 +72,7 @@ def depth_ranks(depths: Tensor) -> Tensor:
 
 @torch.no_grad()
 def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
-                  tile_size: int = 16) -> TileBins:
+                  tile_size: int = 8) -> TileBins:
     """Build depth-sorted per-tile lists, fully vectorised (one argsort on tile * N + depth rank)."""
     n = means2d.shape[0]
     device = means2d.device
@@ -249,7 +249,7 @@ def outside_image(bins: TileBins, width: int, height: int, device) -> Tensor:
 
 
 def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, radii: Tensor,
-              depths: Tensor, width: int, height: int, tile_size: int = 16,
+              depths: Tensor, width: int, height: int, tile_size: int = 8,
               chunk: int = 64) -> tuple[Tensor, Tensor]:
     """Composite N projected Gaussians into an image.
 

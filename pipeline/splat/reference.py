@@ -42,7 +42,7 @@ def _power(means2d: Tensor, conics: Tensor, u: Tensor, v: Tensor) -> Tensor:
 
 
 def rasterize_dense(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                    radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
+                    radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 8,
                     pixel_block: int | None = None) -> tuple[Tensor, Tensor]:
     """Same contract as ``rasterize.rasterize``: ([H, W, D], [H, W]).
 
@@ -80,7 +80,7 @@ def rasterize_dense(means2d: Tensor, conics: Tensor, opacities: Tensor, features
 
 def rasterize_loop(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
                    radii: Tensor, depths: Tensor, width: int, height: int,
-                   tile_size: int = 16) -> tuple[Tensor, Tensor]:
+                   tile_size: int = 8) -> tuple[Tensor, Tensor]:
     """The 3DGS per-pixel loop, vectorised over pixels only. Tiny scenes only."""
     u, v = _pixel_centers(width, height, means2d.dtype, means2d.device)
     support = _support(means2d, radii, u, v, tile_size)

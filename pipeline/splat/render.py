@@ -33,7 +33,7 @@ class RenderOutput:
 @dataclass(frozen=True)
 class RenderSettings:
     near: float = 0.01
-    tile_size: int = 16
+    tile_size: int = 8
     chunk: int = 64
     backend: str = "tiles"
     dense_pixel_block: int | None = None  # dense oracle only: checkpointed pixel blocks

@@ -1,0 +1,1 @@
+"""Dataset readers, splits, target manifolds and the generated default scene."""

@@ -1,0 +1,59 @@
+"""A posed image collection as every reader returns it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from pipeline.cameras import Cameras
+from pipeline.data.images import ImageStore
+
+
+@dataclass
+class Split:
+    """One split: cameras [C] at the working resolution and their lazily loaded images."""
+
+    cameras: Cameras
+    images: ImageStore
+    names: list[str]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+@dataclass
+class Scene:
+    """A scene: named splits, a background colour [3], and optional points [P, 3] with colours."""
+
+    name: str
+    format: str
+    root: Path
+    splits: dict[str, Split]
+    background: Tensor
+    points: Tensor | None = None
+    point_colors: Tensor | None = None
+    box: tuple[Tensor, Tensor] | None = None  # initialisation box when there are no points
+    info: dict = field(default_factory=dict)
+
+    def split(self, name: str) -> Split:
+        if name not in self.splits:
+            raise KeyError(f"{self.root}: no split {name!r}; available: {sorted(self.splits)}")
+        return self.splits[name]
+
+    def all_cameras(self) -> Cameras:
+        return Cameras.cat([s.cameras for s in self.splits.values()])
+
+    def bounds(self) -> tuple[Tensor, Tensor]:
+        """The initialisation box: explicit, else around the points, else the cameras' centre."""
+        if self.box is not None:
+            return self.box
+        if self.points is not None and len(self.points):
+            lo, hi = torch.quantile(self.points, 0.01, dim=0), torch.quantile(self.points, 0.99, dim=0)
+            return lo, hi
+        centers = self.all_cameras().centers
+        mid = centers.mean(0)
+        radius = (centers - mid).norm(dim=1).mean()
+        return mid - 0.5 * radius, mid + 0.5 * radius

@@ -1,0 +1,88 @@
+"""Every training hyperparameter, with a paper-scale and a CPU-scale preset."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """3DGS adaptive density control (clone / split by screen-space gradient, prune)."""
+
+    start: int = 500              # first iteration that densifies
+    stop: int = 15_000            # last iteration that densifies
+    interval: int = 100
+    grad_threshold: float = 0.0002  # mean NDC-space gradient norm of means2d
+    percent_dense: float = 0.01   # clone if max scale <= this * scene extent, else split
+    split_count: int = 2
+    split_scale_div: float = 1.6  # 0.8 * split_count
+    min_opacity: float = 0.005
+    max_screen_radius: float = 20.0  # px; applied after the first opacity reset
+    max_world_scale: float = 0.1     # * scene extent; applied after the first opacity reset
+    opacity_reset_interval: int = 3000
+    opacity_reset_value: float = 0.01
+    max_gaussians: int | None = None  # cap; None = unlimited (paper)
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    means_init: float = 1.6e-4    # * scene extent, decayed exponentially to means_final
+    means_final: float = 1.6e-6
+    sh0: float = 2.5e-3
+    shN: float = 2.5e-3 / 20
+    logit_opacities: float = 0.05
+    log_scales: float = 5e-3
+    quats: float = 1e-3
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    iterations: int = 30_000
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000   # raise the active SH degree every this many iterations
+    ssim_weight: float = 0.2         # loss = (1 - w) L1 + w (1 - SSIM)
+    lr: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    image_width: int | None = None   # train at this width (None = full resolution)
+    init_points: int = 100_000       # random init in the scene box when there is no point cloud
+    init_opacity: float = 0.1
+    seed: int = 0
+
+    def with_changes(self, **changes) -> "FitConfig":
+        return replace(self, **changes)
+
+
+def paper_preset() -> FitConfig:
+    """3DGS defaults: 30k iterations at full resolution, no Gaussian cap."""
+    return FitConfig()
+
+
+def cpu_preset() -> FitConfig:
+    """Scaled for 2 CPU cores: 100 px wide images, 3k iterations, at most 20k Gaussians.
+
+    Schedules keep the paper's proportions (densify over the first half, opacity reset every
+    tenth of the run, SH degree raised every 1/30 of the run).
+    """
+    return FitConfig(
+        iterations=3000, sh_degree=3, sh_degree_interval=100, image_width=100, init_points=5000,
+        densify=DensifyConfig(start=150, stop=1500, interval=100, opacity_reset_interval=1000,
+                              max_gaussians=20_000),
+    )
+
+
+def tiny_preset() -> FitConfig:
+    """For tests and smoke runs: a few hundred iterations at 48 px."""
+    return FitConfig(
+        iterations=300, sh_degree=1, sh_degree_interval=100, image_width=48, init_points=1000,
+        densify=DensifyConfig(start=60, stop=200, interval=40, opacity_reset_interval=10_000,
+                              max_gaussians=5000),
+    )
+
+
+PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "tiny": tiny_preset}
+
+
+def preset(name: str) -> FitConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown fit preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]()

@@ -1,0 +1,45 @@
+"""Training losses: L1, differentiable SSIM (3DGS's 11x11 Gaussian window), and PSNR."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def _window(size: int, sigma: float, channels: int, like: Tensor) -> Tensor:
+    x = torch.arange(size, dtype=like.dtype, device=like.device) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+
+
+def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Mean SSIM of [..., H, W, C] images in [0, 1] (zero-padded 'same' windows, as 3DGS trains)."""
+    return ssim_map(img, ref, window, sigma).mean()
+
+
+def ssim_map(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Per-pixel SSIM [B, C, H, W] of [..., H, W, C] images (Gaussian window, zero padding)."""
+    x = img.reshape(-1, *img.shape[-3:]).permute(0, 3, 1, 2)
+    y = ref.reshape(-1, *ref.shape[-3:]).permute(0, 3, 1, 2)
+    c = x.shape[1]
+    w = _window(window, sigma, c, x)
+    pad = window // 2
+    mu_x, mu_y = F.conv2d(x, w, padding=pad, groups=c), F.conv2d(y, w, padding=pad, groups=c)
+    sxx = F.conv2d(x * x, w, padding=pad, groups=c) - mu_x ** 2
+    syy = F.conv2d(y * y, w, padding=pad, groups=c) - mu_y ** 2
+    sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
+
+
+def photometric_loss(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tensor:
+    """(1 - w) L1 + w (1 - SSIM), the 3DGS training loss."""
+    return (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - ssim(img, ref))
+
+
+def psnr(img: Tensor, ref: Tensor) -> Tensor:
+    """PSNR in dB of images in [0, 1] (mean squared error over all pixels and channels)."""
+    mse = (img.clamp(0, 1) - ref).square().mean()
+    return -10 * torch.log10(mse.clamp_min(1e-20))

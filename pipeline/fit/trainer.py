@@ -1,0 +1,158 @@
+"""Fitting a splat to a set of posed images with the 3DGS recipe.
+
+``Trainer`` is stateful so the active loop can train, add views, reset opacities and continue
+with the same optimizer and schedules; ``fit`` is the one-shot convenience wrapper.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from pipeline.cameras import Cameras
+from pipeline.fit.config import FitConfig
+from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
+from pipeline.fit.losses import photometric_loss, psnr
+from pipeline.splat import Gaussians, RenderSettings, render
+
+
+def scene_extent(cameras: Cameras) -> float:
+    """3DGS scene scale: 1.1 x the largest distance of a camera centre from their mean."""
+    centers = cameras.centers.double()
+    return 1.1 * float((centers - centers.mean(0)).norm(dim=1).max().clamp_min(1e-6))
+
+
+@dataclass
+class StepInfo:
+    step: int
+    loss: float
+    psnr: float
+    num_gaussians: int
+
+
+class Trainer:
+    """Optimises ``gaussians`` on training views (cameras [C], images [C, H, W, 3])."""
+
+    def __init__(self, gaussians: Gaussians, cameras: Cameras, images: Tensor, config: FitConfig,
+                 background: Tensor | None = None, extent: float | None = None,
+                 render_settings: RenderSettings = RenderSettings()):
+        self.config = config
+        self.settings = render_settings
+        self.background = background if background is not None else images.new_zeros(3)
+        self.extent = extent if extent is not None else scene_extent(cameras)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.step = 0
+        self.params = {k: v.detach().clone().requires_grad_(True) for k, v in gaussians.params().items()}
+        lr = config.lr
+        rates = {"means": lr.means_init * self.extent, "log_scales": lr.log_scales, "quats": lr.quats,
+                 "logit_opacities": lr.logit_opacities, "sh0": lr.sh0, "shN": lr.shN}
+        self.optimizer = torch.optim.Adam(
+            [{"params": [p], "lr": rates[k], "name": k} for k, p in self.params.items()], eps=1e-15)
+        self.stats = DensifyStats.zeros(len(gaussians), images)
+        self._order: list[int] = []
+        self.set_views(cameras, images)
+
+    # -- views --------------------------------------------------------------------------------
+    def set_views(self, cameras: Cameras, images: Tensor) -> None:
+        if images.ndim != 4 or images.shape[-1] != 3 or images.shape[0] != len(cameras):
+            raise ValueError(f"images must be [C, H, W, 3] with C={len(cameras)}, got "
+                             f"{tuple(images.shape)}")
+        if images.shape[1:3] != (cameras.height, cameras.width):
+            raise ValueError(f"images are {images.shape[2]}x{images.shape[1]} but cameras are "
+                             f"{cameras.width}x{cameras.height}")
+        if not bool(torch.isfinite(images).all()):
+            raise ValueError("images contain NaN or inf")
+        self.cameras, self.images = cameras, images
+        self._order = []
+
+    def _next_view(self) -> int:
+        if not self._order:  # a fresh random permutation per epoch, as 3DGS
+            self._order = torch.randperm(len(self.cameras), generator=self.generator).tolist()
+        return self._order.pop()
+
+    # -- state ----------------------------------------------------------------------------------
+    @property
+    def gaussians(self) -> Gaussians:
+        return Gaussians(**{k: v.detach() for k, v in self.params.items()})
+
+    @property
+    def active_sh_degree(self) -> int:
+        return min(self.config.sh_degree, self.step // max(self.config.sh_degree_interval, 1))
+
+    def _means_lr(self) -> float:
+        lr, t = self.config.lr, min(self.step / max(self.config.iterations, 1), 1.0)
+        return self.extent * math.exp((1 - t) * math.log(lr.means_init) + t * math.log(lr.means_final))
+
+    def reset_opacity(self, value: float | None = None) -> None:
+        value = self.config.densify.opacity_reset_value if value is None else value
+        self.params = reset_opacity(self.params, self.optimizer, value)
+
+    # -- training -------------------------------------------------------------------------------
+    def train_step(self) -> StepInfo:
+        cfg, dcfg = self.config, self.config.densify
+        self.step += 1
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = self._means_lr()
+        view = self._next_view()
+        cams, target = self.cameras[view], self.images[view]
+        out = render(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
+                     self.settings)
+        means2d = out.means2d[0]
+        means2d.retain_grad()
+        image = out.rgb[0]
+        loss = photometric_loss(image, target, cfg.ssim_weight)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.step < dcfg.stop:
+            self.stats.update(means2d.grad.detach(), out.radii[0], cams.width, cams.height)
+        self.optimizer.step()
+        self._density_control()
+        return StepInfo(self.step, float(loss.detach()), float(psnr(image.detach(), target)),
+                        self.params["means"].shape[0])
+
+    def gaussians_for_grad(self) -> Gaussians:
+        return Gaussians(**self.params)
+
+    def _density_control(self) -> None:
+        dcfg = self.config.densify
+        if self.step < dcfg.stop and self.step > dcfg.start and self.step % dcfg.interval == 0:
+            self.params = densify_and_prune(self.params, self.optimizer, self.stats, dcfg, self.extent,
+                                            self.step > dcfg.opacity_reset_interval, self.generator)
+            self.stats = DensifyStats.zeros(self.params["means"].shape[0], self.stats.grad_sum)
+        if self.step < dcfg.stop and self.step % dcfg.opacity_reset_interval == 0:
+            self.reset_opacity()
+
+    def train(self, iterations: int, progress: bool = False, desc: str = "fit") -> StepInfo | None:
+        """Run ``iterations`` steps; shows a progress bar (loss, PSNR, #Gaussians) if asked."""
+        info = None
+        bar = tqdm(total=iterations, desc=desc, disable=not progress, leave=False, mininterval=1.0)
+        for _ in range(iterations):
+            info = self.train_step()
+            if info.step % 10 == 0:
+                bar.set_postfix(loss=f"{info.loss:.4f}", psnr=f"{info.psnr:.2f}", n=info.num_gaussians,
+                                refresh=False)
+            bar.update(1)
+        bar.close()
+        return info
+
+
+def fit(gaussians: Gaussians, cameras: Cameras, images: Tensor, config: FitConfig,
+        background: Tensor | None = None, progress: bool = False) -> Gaussians:
+    """Train from ``gaussians`` for ``config.iterations`` steps and return the fitted Gaussians."""
+    trainer = Trainer(gaussians, cameras, images, config, background)
+    trainer.train(config.iterations, progress=progress)
+    return trainer.gaussians
+
+
+@torch.no_grad()
+def evaluate_psnr(gaussians: Gaussians, cameras: Cameras, images: Tensor,
+                  background: Tensor | None = None) -> float:
+    """Mean PSNR over views (each view's PSNR, then the mean, as 3DGS reports)."""
+    values = [float(psnr(render(gaussians, cameras[i], background).rgb[0], images[i]))
+              for i in range(len(cameras))]
+    return sum(values) / len(values)
