@@ -1,0 +1,109 @@
+"""Blender reader and the generated scene: layout, determinism, pose conventions, bad input."""
+
+import json
+import shutil
+
+import pytest
+import torch
+
+from pipeline.data.blender import read_blender
+from pipeline.data.images import DataError
+from pipeline.data.synthetic import RADIUS, generate, sample_directions
+from tests.conftest import shared_scene
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("gen") / "scene", seed=3, size=32, n_train=6, n_test=4)
+
+
+def project(cams, points):
+    p = points @ cams.viewmats[:, :3, :3].transpose(1, 2) + cams.viewmats[:, None, :3, 3]
+    uv = p @ cams.Ks.transpose(1, 2)
+    return uv[..., :2] / uv[..., 2:], p[..., 2]
+
+
+def test_generated_scene_reads_back_with_expected_counts(small_scene):
+    scene = read_blender(small_scene)
+    assert {k: len(v) for k, v in scene.splits.items()} == {"train": 6, "test": 4}
+    img = scene.split("train").images[0]
+    assert img.shape == (32, 32, 3) and 0 <= img.min() and img.max() <= 1
+    assert (img < 0.99).any() and (img == 1).any()  # object over a white background
+
+
+def test_generation_is_deterministic(small_scene, tmp_path):
+    again = generate(tmp_path / "again", seed=3, size=32, n_train=6, n_test=4)
+    for name in ("train/r_0.png", "test/r_3.png", "transforms_train.json"):
+        assert (small_scene / name).read_bytes() == (again / name).read_bytes()
+    other = generate(tmp_path / "other", seed=4, size=32, n_train=1, n_test=1)
+    assert (other / "train/r_0.png").read_bytes() != (small_scene / "train/r_0.png").read_bytes()
+
+
+def test_pose_convention_of_reader_matches_generator(small_scene):
+    cams = read_blender(small_scene).split("train").cameras
+    eyes = sample_directions(6, seed=3 * 2 + 1).float() * RADIUS
+    assert torch.allclose(cams.centers, eyes, atol=1e-4)
+    uv, z = project(cams, torch.tensor([[0.0, 0, 0], [0, 0, 1.0]]))
+    assert torch.allclose(uv[:, 0], torch.full((6, 2), 16.0), atol=1e-3)  # looks at the origin
+    assert (z > 0).all()
+    assert (uv[:, 1, 1] < 16).all()  # world up appears above the image centre
+
+
+def test_rendered_object_lies_inside_its_projected_bounding_box(small_scene):
+    scene = read_blender(small_scene)
+    cams, images = scene.split("train").cameras, scene.split("train").images.stack()
+    corners = torch.tensor([[x, y, z] for x in (-0.9, 0.9) for y in (-1.05, 0.9)
+                            for z in (-0.75, 0.95)])
+    uv, _ = project(cams, corners)
+    for i in range(len(cams)):
+        rows, cols = torch.nonzero((images[i] < 0.98).any(-1), as_tuple=True)
+        assert len(rows) > 20
+        lo, hi = uv[i].min(0).values - 1, uv[i].max(0).values + 1
+        assert (cols + 0.5 >= lo[0]).all() and (cols + 0.5 <= hi[0]).all()
+        assert (rows + 0.5 >= lo[1]).all() and (rows + 0.5 <= hi[1]).all()
+        # and it fills a good part of that box (a mirrored pose would leave it elsewhere)
+        box_area = (hi - lo).prod()
+        assert len(rows) > 0.2 * box_area
+
+
+def test_lego_reader_and_downscale():
+    scene = read_blender(shared_scene("blender", "lego"), width=50)
+    train = scene.split("train")
+    assert len(train) == 100 and len(scene.split("test")) == 200
+    assert train.images[0].shape == (50, 50, 3)
+    focal = 0.5 * 50 / torch.tan(torch.tensor(0.6911112070083618 / 2))
+    assert train.cameras.Ks[0, 0, 0].item() == pytest.approx(focal.item(), rel=1e-6)
+
+
+def _copy(src, dst):
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_missing_folder_and_file(tmp_path, small_scene):
+    with pytest.raises(DataError, match="does not exist"):
+        read_blender(tmp_path / "nope")
+    bad = _copy(small_scene, tmp_path / "s")
+    (bad / "transforms_train.json").unlink()
+    with pytest.raises(DataError, match="transforms_train.json"):
+        read_blender(bad)
+
+
+def test_malformed_json_names_the_file(tmp_path, small_scene):
+    bad = _copy(small_scene, tmp_path / "s")
+    (bad / "transforms_test.json").write_text("{not json")
+    with pytest.raises(DataError, match="transforms_test.json.*malformed"):
+        read_blender(bad)
+
+
+def test_missing_frame_image_and_empty_split(tmp_path, small_scene):
+    bad = _copy(small_scene, tmp_path / "s")
+    (bad / "train" / "r_2.png").unlink()
+    with pytest.raises(DataError, match="frame 2"):
+        read_blender(bad)
+    bad2 = _copy(small_scene, tmp_path / "s2")
+    data = json.loads((bad2 / "transforms_test.json").read_text())
+    data["frames"] = []
+    (bad2 / "transforms_test.json").write_text(json.dumps(data))
+    with pytest.raises(DataError, match="no frames"):
+        read_blender(bad2)
