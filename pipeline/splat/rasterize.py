@@ -177,6 +177,48 @@ def _chunk_psi(psi: Tensor, pos: Tensor, valid: Tensor) -> Tensor:
     return g.transpose(1, 2)
 
 
+@dataclass
+class ChunkRecord:
+    """What the forward walk keeps of one depth chunk (Ta active tiles, K listed Gaussians).
+
+    active [Ta] tile ids; pos [Ta, K] positions into the intersection arrays; valid [Ta, K];
+    acc_before [Ta, P, D]; alpha, t_excl [Ta, P, K]; live [Ta, P, K] (d alpha / d exponent = alpha).
+    """
+
+    active: Tensor
+    pos: Tensor
+    valid: Tensor
+    acc_before: Tensor
+    alpha: Tensor
+    t_excl: Tensor
+    live: Tensor
+
+
+@torch.no_grad()
+def composite_forward(psi: Tensor, feats: Tensor, bins: TileBins, phi: Tensor, done: Tensor,
+                      chunk: int) -> tuple[Tensor, Tensor, list[ChunkRecord]]:
+    """The tile walk: accumulated features [T, P, D], final transmittance [T, P], chunk records.
+
+    psi [I, 6] and feats [I, D] per intersection; done [T, P] marks pixels outside the image and
+    is updated in place.
+    """
+    num_tiles, pix = done.shape
+    trans = psi.new_ones(num_tiles, pix).masked_fill_(done, 0.0)
+    final = psi.new_ones(num_tiles, pix)
+    acc = psi.new_zeros(num_tiles, pix, feats.shape[1])
+    records = []
+    for active, pos, valid in _walk(bins, done, chunk):
+        acc_b = acc[active]
+        st = _chunk_state(phi, _chunk_psi(psi, pos, valid), trans[active])
+        acc[active] = acc_b + torch.bmm(st["weights"], feats[pos])
+        ends = st["ends"]
+        final[active] = torch.where(ends, st["trans_after"], final[active])
+        trans[active] = st["trans_after"].masked_fill(ends, 0.0)
+        done[active] = done[active] | ends
+        records.append(ChunkRecord(active, pos, valid, acc_b, st["alpha"], st["t_excl"], st["live"]))
+    return acc, torch.where(done, final, trans), records
+
+
 class _TileComposite(torch.autograd.Function):
     """Front-to-back compositing over tiles with an analytic, recomputing backward.
 
@@ -188,21 +230,7 @@ class _TileComposite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, psi, feats, bins, phi, done, chunk):
-        num_tiles, pix = done.shape
-        trans = psi.new_ones(num_tiles, pix).masked_fill_(done, 0.0)
-        final = psi.new_ones(num_tiles, pix)
-        acc = psi.new_zeros(num_tiles, pix, feats.shape[1])
-        records = []
-        for active, pos, valid in _walk(bins, done, chunk):
-            acc_b = acc[active]
-            st = _chunk_state(phi, _chunk_psi(psi, pos, valid), trans[active])
-            acc[active] = acc_b + torch.bmm(st["weights"], feats[pos])
-            ends = st["ends"]
-            final[active] = torch.where(ends, st["trans_after"], final[active])
-            trans[active] = st["trans_after"].masked_fill(ends, 0.0)
-            done[active] = done[active] | ends
-            records.append((active, pos, valid, acc_b, st["alpha"], st["t_excl"], st["live"]))
-        final = torch.where(done, final, trans)
+        acc, final, records = composite_forward(psi, feats, bins, phi, done, chunk)
         ctx.records = records
         ctx.save_for_backward(psi, feats, phi, acc, final)
         return acc, final
@@ -211,7 +239,9 @@ class _TileComposite(torch.autograd.Function):
     def backward(ctx, grad_acc, grad_trans):
         psi, feats, phi, acc, final = ctx.saved_tensors
         grad_psi, grad_feats = torch.zeros_like(psi), torch.zeros_like(feats)
-        for active, pos, valid, acc_b, alpha, t_excl, live in ctx.records:
+        for rec in ctx.records:
+            active, pos, valid, acc_b = rec.active, rec.pos, rec.valid, rec.acc_before
+            alpha, t_excl, live = rec.alpha, rec.t_excl, rec.live
             f = feats[pos]  # [Ta, K, D]
             g_acc = grad_acc[active]  # [Ta, P, D]
             weights = alpha * t_excl
