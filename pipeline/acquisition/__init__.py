@@ -1,0 +1,29 @@
+"""Acquisition strategies behind one protocol, with an explicit registry (no import magic)."""
+
+from pipeline.acquisition.base import Selection, SelectionContext, Strategy, reduce_pool
+from pipeline.acquisition.coverage import CoverageStrategy
+from pipeline.acquisition.fisherrf import FisherRFStrategy
+from pipeline.acquisition.gopre import GoPreStrategy
+from pipeline.acquisition.popgs import PopGSStrategy
+from pipeline.acquisition.random import RandomStrategy
+
+REGISTRY = {
+    "random": RandomStrategy,
+    "coverage": CoverageStrategy,
+    "fisherrf": FisherRFStrategy,
+    "popgs": PopGSStrategy,
+    "gopre": GoPreStrategy,
+}
+
+
+def make_strategy(name: str, **options) -> Strategy:
+    """Build a strategy by registry key; unknown names or options fail with a clear error."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown strategy {name!r}; available: {sorted(REGISTRY)}")
+    try:
+        return REGISTRY[name](**options)
+    except TypeError as err:
+        raise ValueError(f"strategy {name!r}: bad options {sorted(options)} ({err})") from None
+
+
+__all__ = ["REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy", "reduce_pool"]

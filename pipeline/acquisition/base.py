@@ -1,0 +1,122 @@
+"""The acquisition protocol: a strategy picks views from a candidate pool given the current model.
+
+Every strategy returns a ``Selection`` with its instrumentation (seconds per candidate, seconds
+per round, peak memory) and the score of every candidate at the first pick.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import torch
+from torch import Tensor
+
+from pipeline.cameras import Cameras
+from pipeline.fisher.exact import FisherSpec, view_fisher
+from pipeline.splat import Gaussians, RenderSettings
+
+
+@dataclass
+class SelectionContext:
+    """What a strategy may look at. Pool entries are identified by dataset view ids."""
+
+    gaussians: Gaussians
+    candidates: Cameras              # [M] the pool
+    candidate_ids: list[int]         # [M] dataset ids of the pool entries
+    taken: Cameras                   # views already trained on
+    background: Tensor               # [3]
+    generator: torch.Generator
+    probes: Cameras | None = None    # K probe poses from the target manifold (goal strategies)
+    settings: RenderSettings = field(default_factory=RenderSettings)
+
+    def __post_init__(self) -> None:
+        if len(self.candidates) != len(self.candidate_ids):
+            raise ValueError(f"candidate_ids has {len(self.candidate_ids)} entries for "
+                             f"{len(self.candidates)} candidate cameras")
+        if len(self.candidate_ids) == 0:
+            raise ValueError("candidates: the pool is empty")
+
+
+@dataclass
+class Selection:
+    chosen: list[int]                 # dataset ids, in pick order
+    scores: dict[int, float]          # every candidate's score at the first pick
+    seconds_per_candidate: float
+    round_seconds: float
+    peak_rss_mb: float
+
+
+class Strategy(Protocol):
+    name: str
+
+    def select(self, ctx: SelectionContext, count: int = 1) -> Selection: ...
+
+
+def peak_rss_mb() -> float:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:
+    """Flattened exact diagonal Fisher of each view, [C, D] float64."""
+    if len(cameras) == 0:
+        return torch.zeros(0, 0, dtype=torch.float64)
+    return view_fisher(ctx.gaussians, cameras, ctx.background, spec, ctx.settings).flatten(1)
+
+
+def greedy_pick(candidate_fishers: Tensor, h_train: Tensor, score: Callable[[Tensor, Tensor], Tensor],
+                count: int, maximize: bool) -> tuple[list[int], Tensor]:
+    """Greedy batch selection with the conditional update H <- H + F_pick between picks.
+
+    candidate_fishers [M, D]; h_train [D]; score(h_train, fishers [M, D]) -> [M].
+    Returns pool indices in pick order and the first pick's scores [M]. Ties go to the lowest
+    dataset order (stable), so the result does not depend on the order of the pool.
+    """
+    available = torch.ones(candidate_fishers.shape[0], dtype=torch.bool)
+    h = h_train.clone()
+    picks, first = [], None
+    for _ in range(min(count, candidate_fishers.shape[0])):
+        s = score(h, candidate_fishers)
+        first = s if first is None else first
+        masked = torch.where(available, s, torch.full_like(s, -torch.inf if maximize else torch.inf))
+        best = int(torch.argmax(masked) if maximize else torch.argmin(masked))
+        picks.append(best)
+        available[best] = False
+        h = h + candidate_fishers[best]
+    return picks, first
+
+
+def canonical_order(ctx: SelectionContext) -> list[int]:
+    """Pool indices sorted by dataset id: strategies work in this order (order invariance)."""
+    return sorted(range(len(ctx.candidate_ids)), key=lambda i: ctx.candidate_ids[i])
+
+
+def timed_selection(ctx: SelectionContext, run: Callable[[list[int]], tuple[list[int], Tensor]],
+                    ) -> Selection:
+    """Run ``run(order)`` -> (picked positions in ``order``, scores aligned with ``order``)."""
+    start = time.perf_counter()
+    order = canonical_order(ctx)
+    picked, scores = run(order)
+    seconds = time.perf_counter() - start
+    ids = [ctx.candidate_ids[order[p]] for p in picked]
+    return Selection(ids, {ctx.candidate_ids[i]: float(s) for i, s in zip(order, scores)},
+                     seconds / len(order), seconds, peak_rss_mb())
+
+
+def reduce_pool(candidate_ids: list[int], keep_fraction: float, generator: torch.Generator) -> list[int]:
+    """Candidate-pool reduction: keep a seeded random ``keep_fraction`` (at least one) of the pool."""
+    if not 0 < keep_fraction <= 1:
+        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    ids = sorted(candidate_ids)
+    keep = max(1, round(len(ids) * keep_fraction))
+    order = torch.randperm(len(ids), generator=generator)[:keep].sort().values
+    return [ids[i] for i in order.tolist()]

@@ -1,0 +1,116 @@
+"""Exact diagonal Fisher against brute-force Jacobians, and the posterior/score identities."""
+
+import math
+
+import pytest
+import torch
+
+from pipeline.fisher.exact import FisherSpec, view_fisher
+from pipeline.fisher.posterior import (gopre_score, log_det_information, monte_carlo_score,
+                                       posterior_variance, updated_variance)
+from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat.scenes import orbit_cameras, random_scene
+
+F64 = torch.float64
+BG = torch.tensor([0.3, 0.6, 0.9], dtype=F64)
+SETTINGS = RenderSettings(tile_size=4, chunk=5)
+
+
+def jacobians(g, cams, groups):
+    """Per group, the dense Jacobian [pixels*channels, N, p] of all cameras' RGB (stacked)."""
+    names = list(g.params())
+
+    def fn(*sel):
+        params = dict(g.params())
+        params.update(dict(zip(groups, sel)))
+        return render(Gaussians(**params), cams, BG, settings=SETTINGS).rgb.reshape(-1)
+    jac = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
+    n = len(g)
+    assert set(groups) <= set(names)
+    return [j.reshape(j.shape[0], n, -1) for j in jac]
+
+
+def brute_fisher(g, cams, groups):
+    return torch.cat([j.square().sum(0) for j in jacobians(g, cams, groups)], dim=1)
+
+
+@pytest.mark.parametrize("seed,opacity", [(0, (0.3, 0.9)), (1, (0.6, 0.999)), (2, (0.05, 0.3))])
+def test_exact_fisher_matches_autograd_jacobian_every_group(seed, opacity):
+    g = random_scene(25, seed=seed, dtype=F64, sh_degree=2, opacity_range=opacity)
+    cams = orbit_cameras(1, 13, 11, dtype=F64, radius=2.4, phase=seed)
+    groups = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
+    ours = view_fisher(g, cams, BG, FisherSpec(groups), SETTINGS)[0]
+    ref = brute_fisher(g, cams, groups)
+    assert ref.abs().sum() > 0
+    assert ((ours - ref).norm() / ref.norm()).item() < 1e-10
+
+
+def test_fisher_parameter_subset_and_lower_sh_degree():
+    g = random_scene(20, seed=3, dtype=F64, sh_degree=2)
+    cams = orbit_cameras(1, 12, 12, dtype=F64, radius=2.4)
+    groups = ("means", "logit_opacities", "shN")
+    ours = view_fisher(g, cams, BG, FisherSpec(groups), SETTINGS)[0]
+    ref = brute_fisher(g, cams, groups)
+    assert ours.shape == (20, 3 + 1 + 24)
+    assert torch.allclose(ours, ref, rtol=1e-9, atol=1e-12)
+
+
+def test_fisher_is_additive_over_views_and_non_negative():
+    g = random_scene(20, seed=4, dtype=F64)
+    cams = orbit_cameras(2, 10, 10, dtype=F64, radius=2.4)
+    groups = ("means", "log_scales", "quats")
+    per_view = view_fisher(g, cams, BG, FisherSpec(groups), SETTINGS)
+    joint = brute_fisher(g, cams, groups)  # Jacobian of both images stacked
+    assert (per_view >= 0).all()
+    assert torch.allclose(per_view.sum(0), joint, rtol=1e-9, atol=1e-12)
+
+
+def test_fisher_is_zero_for_gaussians_no_pixel_sees():
+    g = random_scene(20, seed=5, dtype=F64)
+    far = g.means.detach().clone()
+    far[:3] = torch.tensor([[40.0, 40.0, 40.0]], dtype=F64)  # far outside the frustum
+    g = g.replace(means=far)
+    cams = orbit_cameras(1, 12, 12, dtype=F64, radius=2.4)
+    f = view_fisher(g, cams, BG, settings=SETTINGS)[0]
+    assert (f[:3] == 0).all() and (f[3:].sum(1) > 0).any()
+
+
+def test_determinant_lemma_output_space_equals_parameter_space():
+    g = random_scene(6, seed=6, dtype=F64, sh_degree=0)
+    cams = orbit_cameras(1, 6, 5, dtype=F64, radius=2.4)
+    J = torch.cat(jacobians(g, cams, ("means", "log_scales")), dim=2).reshape(90, -1)  # [90, 36]
+    s = torch.rand(J.shape[1], generator=torch.Generator().manual_seed(0), dtype=F64) + 0.1
+    for tau in (1.0, 0.3):
+        out_space = 0.5 * torch.linalg.slogdet(J @ torch.diag(s) @ J.T + tau ** 2 * torch.eye(90, dtype=F64))[1] \
+            - 0.5 * 90 * math.log(tau ** 2)
+        param_space = 0.5 * log_det_information(s, J.T @ J, tau)
+        assert out_space.item() == pytest.approx(param_space.item(), rel=1e-10)
+
+
+def _fisher_vectors(seed=7, views=6):
+    g = random_scene(60, seed=seed, dtype=F64)
+    cams = orbit_cameras(views, 12, 12, dtype=F64, radius=2.6)
+    return view_fisher(g, cams, BG, settings=SETTINGS).flatten(1)
+
+
+def test_jensen_gopre_score_bounds_direct_monte_carlo():
+    f = _fisher_vectors()
+    h, cands, probes = f[:2].sum(0), f[2:4], f[4:]
+    sx = updated_variance(posterior_variance(h), cands)
+    upper = gopre_score(sx, probes.mean(0))
+    mc = monte_carlo_score(sx, probes)
+    assert (upper >= mc - 1e-9).all() and (upper > mc).any()
+
+
+def test_gopre_with_a_large_identity_goal_ranks_as_dopt():
+    f = _fisher_vectors(seed=8, views=8)
+    h, cands = f[:2].sum(0), f[2:]
+    sx = updated_variance(posterior_variance(h), cands)
+    gopre = gopre_score(sx, torch.full_like(h, 1e12))
+    dopt = torch.log1p(cands / (h + 1e-6)).sum(-1)
+    assert torch.argsort(gopre).tolist() == torch.argsort(dopt, descending=True).tolist()
+
+
+def test_posterior_rejects_bad_lambda():
+    with pytest.raises(ValueError, match="lambda"):
+        posterior_variance(torch.ones(3), 0.0)
