@@ -30,6 +30,8 @@ class SelectionContext:
     generator: torch.Generator
     probes: Cameras | None = None    # K probe poses from the target manifold (goal strategies)
     settings: RenderSettings = field(default_factory=RenderSettings)
+    fisher_seconds: float = field(default=0.0, init=False)  # time spent in Fisher passes
+    fisher_views: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
         if len(self.candidates) != len(self.candidate_ids):
@@ -46,6 +48,8 @@ class Selection:
     seconds_per_candidate: float
     round_seconds: float
     peak_rss_mb: float
+    fisher_seconds: float = 0.0       # of round_seconds, spent computing Fisher (all views)
+    fisher_views: int = 0             # candidates + taken + probes whose Fisher was computed
 
 
 class Strategy(Protocol):
@@ -70,7 +74,11 @@ def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) ->
     """Flattened exact diagonal Fisher of each view, [C, D] float64."""
     if len(cameras) == 0:
         return torch.zeros(0, 0, dtype=torch.float64)
-    return view_fisher(ctx.gaussians, cameras, ctx.background, spec, ctx.settings).flatten(1)
+    start = time.perf_counter()
+    out = view_fisher(ctx.gaussians, cameras, ctx.background, spec, ctx.settings).flatten(1)
+    ctx.fisher_seconds += time.perf_counter() - start
+    ctx.fisher_views += len(cameras)
+    return out
 
 
 def greedy_pick(candidate_fishers: Tensor, h_train: Tensor, score: Callable[[Tensor, Tensor], Tensor],
@@ -104,12 +112,14 @@ def timed_selection(ctx: SelectionContext, run: Callable[[list[int]], tuple[list
                     ) -> Selection:
     """Run ``run(order)`` -> (picked positions in ``order``, scores aligned with ``order``)."""
     start = time.perf_counter()
+    ctx.fisher_seconds, ctx.fisher_views = 0.0, 0
     order = canonical_order(ctx)
     picked, scores = run(order)
     seconds = time.perf_counter() - start
     ids = [ctx.candidate_ids[order[p]] for p in picked]
     return Selection(ids, {ctx.candidate_ids[i]: float(s) for i, s in zip(order, scores)},
-                     seconds / len(order), seconds, peak_rss_mb())
+                     seconds / len(order), seconds, peak_rss_mb(), ctx.fisher_seconds,
+                     ctx.fisher_views)
 
 
 def reduce_pool(candidate_ids: list[int], keep_fraction: float, generator: torch.Generator) -> list[int]:

@@ -3,7 +3,8 @@
 import importlib
 import sys
 
-COMMANDS = {"render": "pipeline.bench.render"}
+COMMANDS = {"render": "pipeline.bench.render", "fisher": "pipeline.bench.fisher",
+            "select": "pipeline.bench.select"}
 
 
 def main() -> None:

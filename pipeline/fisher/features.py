@@ -33,19 +33,18 @@ def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: in
     """Project and return (projection, A [N, 9, P]) with P the selected raw parameters per Gaussian.
 
     Each feature row depends only on its own Gaussian, so one backward pass per feature (9 in
-    all) gives A for every Gaussian at once.
+    all, batched with vmap) gives A for every Gaussian at once.
     """
     leaves = {k: v.detach().clone().requires_grad_(True) for k, v in gaussians.params().items()}
     with torch.enable_grad():
         proj = project(Gaussians(**leaves), viewmat, K, width, height, sh_degree, near)
         feats = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None], proj.colors], dim=1)
         wanted = [leaves[g] for g, _ in param_layout(gaussians, groups)]
-        rows = []
-        for j in range(feats.shape[1]):
-            grads = torch.autograd.grad(feats[:, j].sum(), wanted, retain_graph=j < feats.shape[1] - 1,
-                                        allow_unused=True)
-            rows.append(torch.cat([(gr if gr is not None else torch.zeros_like(w)).reshape(len(w), -1)
-                                   for gr, w in zip(grads, wanted)], dim=1))
+        selectors = torch.eye(feats.shape[1], dtype=feats.dtype, device=feats.device)
+        selectors = selectors[:, None, :].expand(-1, feats.shape[0], -1)  # [9, N, 9]
+        grads = torch.autograd.grad(feats, wanted, selectors, is_grads_batched=True,
+                                    allow_unused=True, materialize_grads=True)
+        rows = torch.cat([gr.reshape(gr.shape[0], gr.shape[1], -1) for gr in grads], dim=2)
     detached = Projection(*(getattr(proj, f).detach() for f in
                             ("means2d", "conics", "depths", "radii", "colors", "opacities")))
-    return detached, torch.stack(rows, dim=1)  # [N, 9, P]
+    return detached, rows.transpose(0, 1)  # [N, 9, P]
