@@ -47,13 +47,17 @@ def make_ctx(parts, perm=None, seed=0):
     ids = [10 + i for i in range(len(pool))]
     if perm is not None:
         pool, ids = pool[perm], [ids[i] for i in perm]
-    return SelectionContext(g, pool, ids, taken, torch.ones(3), torch.Generator().manual_seed(seed), probes)
+    from pipeline.splat import render
+    images = render(random_scene(1500, seed=9), taken, torch.ones(3)).rgb.detach()
+    return SelectionContext(g, pool, ids, taken, torch.ones(3), torch.Generator().manual_seed(seed), probes,
+                            taken_images=images)
 
 
 @pytest.mark.parametrize("name,options", [("random", {}), ("coverage", {}), ("fisherrf", {}),
                                           ("popgs", {}), ("gopre", {}), ("gopre", {"score": "mc"}),
                                           ("gopre", {"score": "trace"}), ("gopre", {"goal": "identity"}),
-                                          ("gopre", {"tau": 1e-3})])
+                                          ("gopre", {"tau": 1e-3}), ("popgs", {"variant": "block"}),
+                                          ("gaussmi", {}), ("activenerf", {"steps": 10})])
 def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options):
     strategy = make_strategy(name, **options)
     first = strategy.select(make_ctx(ctx_parts), count=2)
@@ -109,3 +113,57 @@ def test_reduce_pool_is_seeded_and_sized():
     assert a == b and len(a) == 10 and set(a) <= set(ids)
     with pytest.raises(ValueError, match="keep_fraction"):
         reduce_pool(ids, 0.0, torch.Generator())
+
+
+def test_popgs_block_scores_match_dense_per_gaussian_blocks():
+    from pipeline.splat import RenderSettings, render
+    from pipeline.splat import Gaussians
+    from pipeline.splat.scenes import orbit_cameras
+    f64 = torch.float64
+    g = random_scene(8, seed=3, dtype=f64, sh_degree=0)
+    cams = orbit_cameras(3, 8, 8, dtype=f64, radius=2.4)
+    settings = RenderSettings(tile_size=4, chunk=4)
+    groups = ("means", "log_scales", "quats", "logit_opacities", "sh0")
+
+    def jac(cam):
+        def fn(*sel):
+            params = dict(g.params())
+            params.update(dict(zip(groups, sel)))
+            return render(Gaussians(**params), cam, torch.ones(3, dtype=f64), settings=settings).rgb.reshape(-1)
+        js = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
+        return torch.cat([j.reshape(j.shape[0], 8, -1) for j in js], 2)  # [O, N, 14]
+    blocks = [torch.einsum("onp,onq->npq", j, j) for j in (jac(cams[i]) for i in range(3))]
+    lam = 1e-2
+    sigma_inv = blocks[0] + lam * torch.eye(14, dtype=f64)
+    expect = [torch.linalg.slogdet(sigma_inv + b)[1].sum() - torch.linalg.slogdet(sigma_inv)[1].sum()
+              for b in blocks[1:]]
+    ctx = SelectionContext(g, cams[[1, 2]], [1, 2], cams[[0]], torch.ones(3, dtype=f64),
+                           torch.Generator(), settings=settings)
+    sel = make_strategy("popgs", variant="block", lam=lam).select(ctx)
+    assert sel.scores[1] == pytest.approx(expect[0].item(), rel=1e-8)
+    assert sel.scores[2] == pytest.approx(expect[1].item(), rel=1e-8)
+
+
+def test_gaussmi_prefers_directions_not_yet_observed():
+    from pipeline.splat import render
+    g = random_scene(400, seed=5, extent=0.5)
+    seen = cams_looking([[3.0, 0.2, 0.3], [3.0, -0.2, -0.2]], [[0.0, 0.0, 0.0]] * 2)
+    images = render(g, seen, torch.ones(3)).rgb.detach()  # the model explains them perfectly
+    pool = cams_looking([[3.0, 0.0, 0.0], [-3.0, 0.0, 0.0]], [[0.0, 0.0, 0.0]] * 2)
+    ctx = SelectionContext(g, pool, [0, 1], seen, torch.ones(3), torch.Generator(), taken_images=images)
+    sel = make_strategy("gaussmi").select(ctx)
+    assert sel.chosen == [1] and sel.scores[1] > sel.scores[0]
+
+
+def test_activenerf_variance_grows_with_the_error_it_has_to_explain():
+    from pipeline.splat import render
+    g = random_scene(400, seed=6, extent=0.5)
+    seen = cams_looking([[3.0, 0.2, 0.3], [0.2, 3.0, -0.2]], [[0.0, 0.0, 0.0]] * 2)
+    clean = render(g, seen, torch.ones(3)).rgb.detach()
+    noisy = (clean + 0.3 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+    pool = cams_looking([[2.0, 2.0, 0.5]], [[0.0, 0.0, 0.0]])
+    scores = []
+    for images in (clean, noisy):
+        ctx = SelectionContext(g, pool, [0], seen, torch.ones(3), torch.Generator(), taken_images=images)
+        scores.append(make_strategy("activenerf").select(ctx).scores[0])
+    assert scores[1] > 2 * scores[0]

@@ -114,3 +114,25 @@ def test_gopre_with_a_large_identity_goal_ranks_as_dopt():
 def test_posterior_rejects_bad_lambda():
     with pytest.raises(ValueError, match="lambda"):
         posterior_variance(torch.ones(3), 0.0)
+
+
+def test_predictive_variance_map_matches_dense_jacobian():
+    from pipeline.fisher.exact import predictive_variance_maps
+    g = random_scene(20, seed=9, dtype=F64, sh_degree=1, opacity_range=(0.3, 0.999))
+    cams = orbit_cameras(1, 10, 9, dtype=F64, radius=2.4)
+    groups = tuple(g.params())
+    J = torch.cat(jacobians(g, cams, groups), dim=2)  # [270, N, P]
+    s = torch.rand(20, J.shape[2], generator=torch.Generator().manual_seed(1), dtype=F64) + 0.1
+    brute = (J.square() * s).sum((1, 2)).reshape(9, 10, 3)
+    ours = predictive_variance_maps(g, cams, s, BG, settings=SETTINGS)[0]
+    assert ((ours - brute).norm() / brute.norm()).item() < 1e-10
+
+
+def test_predictive_entropy_parameter_form_equals_output_form_for_diagonal_fisher():
+    from pipeline.fisher.posterior import predictive_entropy
+    gen = torch.Generator().manual_seed(2)
+    s, f = torch.rand(7, generator=gen, dtype=F64), torch.rand(7, generator=gen, dtype=F64)
+    J = torch.diag(f.sqrt())  # a view whose J^T J is exactly diag(f), 7 outputs
+    dense = 0.5 * torch.linalg.slogdet(2 * math.pi * math.e * (J @ torch.diag(s) @ J.T
+                                                                 + 0.25 * torch.eye(7, dtype=F64)))[1]
+    assert predictive_entropy(s, f, 7, tau=0.5).item() == pytest.approx(dense.item(), rel=1e-12)

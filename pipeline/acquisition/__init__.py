@@ -1,8 +1,10 @@
 """Acquisition strategies behind one protocol, with an explicit registry (no import magic)."""
 
+from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.acquisition.base import Selection, SelectionContext, Strategy, reduce_pool
 from pipeline.acquisition.coverage import CoverageStrategy
 from pipeline.acquisition.fisherrf import FisherRFStrategy
+from pipeline.acquisition.gaussmi import GaussMIStrategy
 from pipeline.acquisition.gopre import GoPreStrategy
 from pipeline.acquisition.popgs import PopGSStrategy
 from pipeline.acquisition.random import RandomStrategy
@@ -13,6 +15,8 @@ REGISTRY = {
     "fisherrf": FisherRFStrategy,
     "popgs": PopGSStrategy,
     "gopre": GoPreStrategy,
+    "activenerf": ActiveNeRFStrategy,
+    "gaussmi": GaussMIStrategy,
 }
 
 

@@ -29,6 +29,7 @@ class SelectionContext:
     background: Tensor               # [3]
     generator: torch.Generator
     probes: Cameras | None = None    # K probe poses from the target manifold (goal strategies)
+    taken_images: Tensor | None = None  # [C_taken, H, W, 3] (strategies that use errors)
     settings: RenderSettings = field(default_factory=RenderSettings)
     fisher_seconds: float = field(default=0.0, init=False)  # time spent in Fisher passes
     fisher_views: int = field(default=0, init=False)

@@ -64,49 +64,120 @@ def _exponent_basis(conics: Tensor, local_means: Tensor, opacities: Tensor) -> T
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
-def feature_fisher(proj, width: int, height: int, background: Tensor,
-                   settings: RenderSettings = RenderSettings()) -> Tensor:
+@dataclass
+class ChunkDerivatives:
+    """Per-chunk pieces of d I_pc / d features for the listed Gaussians of active tiles.
+
+    active [Ta]; pos [Ta, K]; valid [Ta, K]; s [Ta, P, K, 3] = d I_pc / d exponent;
+    w [Ta, P, K] compositing weights (d I_pc / d colour_c).
+    """
+
+    active: Tensor
+    pos: Tensor
+    valid: Tensor
+    s: Tensor
+    w: Tensor
+
+
+class ViewWalk:
+    """One view's tile walk with what the Fisher and the variance maps need."""
+
+    def __init__(self, proj, width: int, height: int, background: Tensor, settings: RenderSettings):
+        dtype, device = proj.means2d.dtype, proj.means2d.device
+        ts = settings.tile_size
+        self.width, self.height = width, height
+        self.bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, width, height, ts)
+        psi = intersection_coeffs(self.bins, proj.means2d, proj.conics, proj.opacities)
+        self.colors = proj.colors[self.bins.gauss_ids]  # [I, 3]
+        self.phi = tile_monomials(ts, dtype, device)
+        done = outside_image(self.bins, width, height, device)
+        self.acc, self.final, self.records = composite_forward(psi, self.colors, self.bins, self.phi,
+                                                               done, settings.chunk)
+        self.mono, self.pair = _moment_tables(ts, dtype, device)
+        tile = torch.repeat_interleave(torch.arange(self.bins.num_tiles, device=device),
+                                       self.bins.counts)
+        centre = torch.stack([(tile % self.bins.tiles_x) * ts + ts / 2,
+                              (tile // self.bins.tiles_x) * ts + ts / 2], -1).to(dtype)
+        g = self.bins.gauss_ids
+        self.basis = _exponent_basis(proj.conics[g], proj.means2d[g] - centre, proj.opacities[g])
+        self.behind_bg = self.final[..., None] * background.to(dtype)  # [T, P, 3]
+
+    def chunks(self):
+        for rec in self.records:
+            a = rec.active
+            f = self.colors[rec.pos]  # [Ta, K, 3]
+            w = rec.alpha * rec.t_excl  # [Ta, P, K]
+            behind = (self.acc[a] - rec.acc_before + self.behind_bg[a])[:, :, None, :]
+            suffix = behind - torch.cumsum(w[..., None] * f[:, None], dim=2)  # colour behind each
+            s = rec.alpha[..., None] * (rec.t_excl[..., None] * f[:, None]
+                                        - suffix / (1 - rec.alpha)[..., None])
+            yield ChunkDerivatives(a, rec.pos, rec.valid, s * rec.live[..., None], w)
+
+
+def feature_fisher(walk: ViewWalk, n: int) -> Tensor:
     """G [N, 9, 9] float64: sum over pixels and channels of d I / d features outer products."""
-    n = proj.means2d.shape[0]
-    dtype, device = proj.means2d.dtype, proj.means2d.device
-    ts = settings.tile_size
-    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, width, height, ts)
-    psi = intersection_coeffs(bins, proj.means2d, proj.conics, proj.opacities)
-    colors = proj.colors[bins.gauss_ids]  # [I, 3]
-    phi = tile_monomials(ts, dtype, device)
-    done = outside_image(bins, width, height, device)
-    acc, final, records = composite_forward(psi, colors, bins, phi, done, settings.chunk)
-    mono, pair = _moment_tables(ts, dtype, device)
-    tile = torch.repeat_interleave(torch.arange(bins.num_tiles, device=device), bins.counts)
-    centre = torch.stack([(tile % bins.tiles_x) * ts + ts / 2, (tile // bins.tiles_x) * ts + ts / 2],
-                         -1).to(dtype)
-    g_ids = bins.gauss_ids
-    basis = _exponent_basis(proj.conics[g_ids], proj.means2d[g_ids] - centre, proj.opacities[g_ids])
-    behind_bg = final[..., None] * background.to(dtype)  # [T, P, 3]
-    G = torch.zeros(n, 9, 9, dtype=torch.float64, device=device)
-    for rec in records:
-        a = rec.active
-        f = colors[rec.pos]  # [Ta, K, 3]
-        w = rec.alpha * rec.t_excl  # [Ta, P, K]
-        wf = w[..., None] * f[:, None]  # [Ta, P, K, 3]
-        behind = (acc[a] - rec.acc_before + behind_bg[a])[:, :, None, :]
-        suffix = behind - torch.cumsum(wf, dim=2)  # colour composited behind each Gaussian
-        s = rec.alpha[..., None] * (rec.t_excl[..., None] * f[:, None]
-                                    - suffix / (1 - rec.alpha)[..., None])
-        s = s * rec.live[..., None]
-        m4 = torch.einsum("tpk,pm->tkm", (s * s).sum(-1), mono)  # [Ta, K, 15]
-        m2 = torch.einsum("tpkc,pj->tkjc", s * w[..., None], phi)  # [Ta, K, 6, 3]
+    G = torch.zeros(n, 9, 9, dtype=torch.float64, device=walk.phi.device)
+    for ch in walk.chunks():
+        s, w = ch.s, ch.w
+        m4 = torch.einsum("tpk,pm->tkm", (s * s).sum(-1), walk.mono)  # [Ta, K, 15]
+        m2 = torch.einsum("tpkc,pj->tkjc", s * w[..., None], walk.phi)  # [Ta, K, 6, 3]
         w2 = (w * w).sum(1)  # [Ta, K]
-        bk = basis[rec.pos]  # [Ta, K, 6, 6]
-        local = torch.zeros(*rec.pos.shape, 9, 9, dtype=dtype, device=device)
-        local[..., :6, :6] = bk @ m4[..., pair] @ bk.transpose(-1, -2)
+        bk = walk.basis[ch.pos]  # [Ta, K, 6, 6]
+        local = w.new_zeros(*ch.pos.shape, 9, 9)
+        local[..., :6, :6] = bk @ m4[..., walk.pair] @ bk.transpose(-1, -2)
         cross = bk @ m2
         local[..., :6, 6:] = cross
         local[..., 6:, :6] = cross.transpose(-1, -2)
         local[..., 6:, 6:] = torch.diag_embed(w2[..., None].expand(*w2.shape, 3))
-        keep = rec.valid.reshape(-1)
-        G.index_add_(0, g_ids[rec.pos.reshape(-1)[keep]], local.reshape(-1, 9, 9)[keep].double())
+        keep = ch.valid.reshape(-1)
+        ids = walk.bins.gauss_ids[ch.pos.reshape(-1)[keep]]
+        G.index_add_(0, ids, local.reshape(-1, 9, 9)[keep].double())
     return G
+
+
+def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
+    """Per-pixel predictive variance sum_i J_pc,i^2 S_i, [H, W, 3] (float64).
+
+    feature_cov [N, 9, 9] = A diag(S) A^T per Gaussian, the posterior covariance pushed to the
+    Gaussian's 2D features; per (pixel, Gaussian) the variance term is d^T C d with
+    d = [s_c h ; w e_c], h = B phi, so h^T C h = phi^T (B^T C B) phi (moments of degree <= 4).
+    """
+    img = torch.zeros(walk.bins.num_tiles, walk.phi.shape[0], 3, dtype=torch.float64,
+                      device=walk.phi.device)
+    ids_all = walk.bins.gauss_ids
+    cov = feature_cov[ids_all].to(walk.phi.dtype)  # [I, 9, 9]
+    bt = walk.basis.transpose(-1, -2)
+    quad = bt @ cov[:, :6, :6] @ walk.basis  # [I, 6, 6] on phi
+    q15 = quad.new_zeros(quad.shape[0], walk.mono.shape[1])
+    q15.index_add_(1, walk.pair.reshape(-1), quad.reshape(quad.shape[0], -1))
+    lin = bt @ cov[:, :6, 6:]  # [I, 6, 3]
+    col = torch.diagonal(cov[:, 6:, 6:], dim1=-2, dim2=-1)  # [I, 3]
+    for ch in walk.chunks():
+        pos = ch.pos
+        hq = torch.einsum("pm,tkm->tpk", walk.mono, q15[pos])  # h^T C_geo h
+        hl = torch.einsum("pj,tkjc->tpkc", walk.phi, lin[pos])  # h^T C_cross
+        w = ch.w * ch.valid[:, None, :]
+        term = ch.s ** 2 * hq[..., None] + 2 * ch.s * w[..., None] * hl \
+            + (w * w)[..., None] * col[pos][:, None]
+        img.index_add_(0, ch.active, term.sum(2).double())
+    from pipeline.splat.rasterize import untile
+    return untile(img, walk.bins, walk.width, walk.height)
+
+
+def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
+                 spec: "FisherSpec" = None, settings: RenderSettings = RenderSettings()):
+    """Yield per view (A [N, 9, P], G [N, 9, 9] float64, ViewWalk): the Fisher's factors."""
+    spec = spec or FisherSpec()
+    if len(gaussians) == 0:
+        raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
+    gaussians.validate()
+    cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
+    bg = gaussians.means.new_zeros(3) if background is None else background
+    for i in range(len(cams)):
+        proj, jac = feature_jacobian(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height,
+                                     spec.groups, spec.sh_degree, settings.near)
+        walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
+        yield jac.double(), feature_fisher(walk, len(gaussians)), walk
 
 
 def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
@@ -117,19 +188,19 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
     P = the selected raw parameters per Gaussian in ``param_layout`` order. Gaussians that no
     pixel sees get exactly zero.
     """
-    if len(gaussians) == 0:
-        raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
-    gaussians.validate()
-    cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
-    bg = gaussians.means.new_zeros(3) if background is None else background
-    out = []
-    for i in range(len(cams)):
-        proj, jac = feature_jacobian(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height,
-                                     spec.groups, spec.sh_degree, settings.near)
-        G = feature_fisher(proj, cams.width, cams.height, bg, settings)
-        A = jac.double()
-        out.append(torch.einsum("nip,nij,njp->np", A, G, A))
-    return torch.stack(out)
+    return torch.stack([torch.einsum("nip,nij,njp->np", A, G, A)
+                        for A, G, _ in view_factors(gaussians, cameras, background, spec, settings)])
+
+
+def predictive_variance_maps(gaussians: Gaussians, cameras: Cameras, posterior_var: Tensor,
+                             background: Tensor | None = None, spec: FisherSpec = FisherSpec(),
+                             settings: RenderSettings = RenderSettings()) -> Tensor:
+    """Per-pixel predictive variance maps [C, H, W, 3] for a diagonal posterior S [N, P]."""
+    maps = []
+    for A, _, walk in view_factors(gaussians, cameras, background, spec, settings):
+        cov = torch.einsum("nip,np,njp->nij", A, posterior_var.double(), A)
+        maps.append(variance_map(walk, cov))
+    return torch.stack(maps)
 
 
 def flat_names(gaussians: Gaussians, spec: FisherSpec = FisherSpec()) -> list[tuple[str, int]]:
