@@ -66,7 +66,7 @@ def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options
     assert first.chosen == again.chosen == shuffled.chosen
     assert len(set(first.chosen)) == 2
     for k, v in first.scores.items():
-        assert shuffled.scores[k] == pytest.approx(v, rel=1e-9)
+        assert shuffled.scores[k] == pytest.approx(v, rel=1e-6)  # float32 fits: ~1e-9 noise
     assert first.round_seconds >= 0 and first.peak_rss_mb > 0
 
 
