@@ -167,3 +167,26 @@ def test_activenerf_variance_grows_with_the_error_it_has_to_explain():
         ctx = SelectionContext(g, pool, [0], seen, torch.ones(3), torch.Generator(), taken_images=images)
         scores.append(make_strategy("activenerf").select(ctx).scores[0])
     assert scores[1] > 2 * scores[0]
+
+
+def test_probe_count_and_sampling():
+    from pipeline.acquisition import probe_count, sample_probes
+    assert probe_count(25, 100) == 25 and probe_count(25, 10) == 10
+    assert probe_count(0.125, 160) == 20 and probe_count(0.125, 3) == 1
+    with pytest.raises(ValueError, match="probe count"):
+        probe_count(0, 10)
+    a = sample_probes(list(range(50)), 5, torch.Generator().manual_seed(0))
+    assert a == sample_probes(list(range(49, -1, -1)), 5, torch.Generator().manual_seed(0))
+    assert len(set(a)) == 5
+    with pytest.raises(ValueError, match="no views"):
+        sample_probes([], 5, torch.Generator())
+
+
+def test_scores_are_finite_with_zero_fisher_entries():
+    from pipeline.fisher.posterior import (gopre_score, monte_carlo_score, posterior_variance,
+                                           trace_score, updated_variance)
+    h = torch.zeros(5, dtype=torch.float64)
+    f = torch.tensor([[0.0, 0, 0, 0, 0], [1.0, 0, 2.0, 0, 0]], dtype=torch.float64)
+    sx = updated_variance(posterior_variance(h), f, tau=1e-4)
+    for value in (gopre_score(sx, f[1]), trace_score(sx, f[1]), monte_carlo_score(sx, f)):
+        assert torch.isfinite(value).all()

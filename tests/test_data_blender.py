@@ -107,3 +107,13 @@ def test_missing_frame_image_and_empty_split(tmp_path, small_scene):
     (bad2 / "transforms_test.json").write_text(json.dumps(data))
     with pytest.raises(DataError, match="no frames"):
         read_blender(bad2)
+
+
+def test_images_of_inconsistent_size_are_named(tmp_path, small_scene):
+    from PIL import Image
+    bad = _copy(small_scene, tmp_path / "s")
+    Image.open(bad / "train" / "r_1.png").resize((20, 20)).save(bad / "train" / "r_1.png")
+    scene = read_blender(bad)
+    scene.split("train").images[0]
+    with pytest.raises(DataError, match="r_1.png.*inconsistent"):
+        scene.split("train").images[1]

@@ -1,7 +1,8 @@
 """Acquisition strategies behind one protocol, with an explicit registry (no import magic)."""
 
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
-from pipeline.acquisition.base import Selection, SelectionContext, Strategy, reduce_pool
+from pipeline.acquisition.base import (Selection, SelectionContext, Strategy, probe_count, reduce_pool,
+                                       sample_probes)
 from pipeline.acquisition.coverage import CoverageStrategy
 from pipeline.acquisition.fisherrf import FisherRFStrategy
 from pipeline.acquisition.gaussmi import GaussMIStrategy
@@ -30,4 +31,5 @@ def make_strategy(name: str, **options) -> Strategy:
         raise ValueError(f"strategy {name!r}: bad options {sorted(options)} ({err})") from None
 
 
-__all__ = ["REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy", "reduce_pool"]
+__all__ = ["REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy", "probe_count",
+           "reduce_pool", "sample_probes"]

@@ -131,3 +131,22 @@ def reduce_pool(candidate_ids: list[int], keep_fraction: float, generator: torch
     keep = max(1, round(len(ids) * keep_fraction))
     order = torch.randperm(len(ids), generator=generator)[:keep].sort().values
     return [ids[i] for i in order.tolist()]
+
+
+def probe_count(k: int | float, pool_size: int) -> int:
+    """Number of probe poses K: an int is used as is (capped at the pool), a float in (0, 1) is a
+    fraction of the pool (the paper: 25 for Blender, 1/8 of the views for real scenes); >= 1."""
+    if isinstance(k, float) and 0 < k < 1:
+        return max(1, round(k * pool_size))
+    if int(k) < 1:
+        raise ValueError(f"probe count must be >= 1 or a fraction in (0, 1), got {k}")
+    return min(int(k), pool_size)
+
+
+def sample_probes(pool_ids: list[int], k: int | float, generator: torch.Generator) -> list[int]:
+    """K probe view ids drawn uniformly without replacement from the target-manifold pool."""
+    ids = sorted(pool_ids)
+    if not ids:
+        raise ValueError("sample_probes: the target manifold has no views to probe")
+    count = probe_count(k, len(ids))
+    return [ids[i] for i in torch.randperm(len(ids), generator=generator)[:count].sort().values.tolist()]

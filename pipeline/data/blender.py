@@ -85,6 +85,6 @@ def read_blender(root: str | Path, width: int | None = None, background=(1.0, 1.
         k = torch.tensor([[focal, 0, w / 2], [0, focal, h / 2], [0, 0, 1]], dtype=torch.float64)
         cams = Cameras(c2w_opengl_to_viewmat(c2w).float(), k.expand(len(paths), 3, 3).float(), w, h)
         names = [Path(f["file_path"]).name for f in data["frames"]]
-        out[split] = Split(cams, ImageStore(paths, (w, h), bg, budget_mb), names)
+        out[split] = Split(cams, ImageStore(paths, (w, h), bg, budget_mb, (full_w, full_h)), names)
     box = (torch.full((3,), -1.3), torch.full((3,), 1.3))  # 3DGS's random init for synthetic scenes
     return Scene(root.name, "blender", root, out, bg, box=box)

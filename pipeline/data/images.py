@@ -53,8 +53,9 @@ class ImageStore:
     """Images of one split, loaded on demand at ``size`` and cached up to ``budget_mb``."""
 
     def __init__(self, paths: list[Path], size: tuple[int, int], background: Tensor,
-                 budget_mb: float = 1024.0):
+                 budget_mb: float = 1024.0, source_size: tuple[int, int] | None = None):
         self.paths, self.size, self.background = list(paths), size, background
+        self.source_size = source_size  # every file must have this size (None: not checked)
         self.budget_bytes = budget_mb * 2 ** 20
         self._cache: OrderedDict[int, Tensor] = OrderedDict()
         self._bytes = 0
@@ -66,6 +67,10 @@ class ImageStore:
         if index in self._cache:
             self._cache.move_to_end(index)
             return self._cache[index]
+        if self.source_size is not None and image_size(self.paths[index]) != tuple(self.source_size):
+            got = image_size(self.paths[index])
+            raise DataError(f"{self.paths[index]}: image is {got[0]}x{got[1]}, the scene's images are "
+                            f"{self.source_size[0]}x{self.source_size[1]} (inconsistent sizes)")
         img = read_image(self.paths[index], self.size, self.background)
         expected = (self.size[1], self.size[0])
         if tuple(img.shape[:2]) != expected:
@@ -77,6 +82,11 @@ class ImageStore:
             _, old = self._cache.popitem(last=False)
             self._bytes -= old.numel() * old.element_size()
         return img
+
+    def subset(self, indices: list[int]) -> "ImageStore":
+        """A store over some of these images (its own cache, the same budget)."""
+        return ImageStore([self.paths[i] for i in indices], self.size, self.background,
+                          self.budget_bytes / 2 ** 20, self.source_size)
 
     def stack(self, indices: list[int] | None = None) -> Tensor:
         """[C, H, W, 3] for ``indices`` (all by default)."""

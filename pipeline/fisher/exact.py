@@ -107,31 +107,44 @@ class ViewWalk:
             a = rec.active
             f = self.colors[rec.pos]  # [Ta, K, 3]
             w = rec.alpha * rec.t_excl  # [Ta, P, K]
+            wf = w[..., None] * f[:, None]  # [Ta, P, K, 3]
             behind = (self.acc[a] - rec.acc_before + self.behind_bg[a])[:, :, None, :]
-            suffix = behind - torch.cumsum(w[..., None] * f[:, None], dim=2)  # colour behind each
-            s = rec.alpha[..., None] * (rec.t_excl[..., None] * f[:, None]
-                                        - suffix / (1 - rec.alpha)[..., None])
-            yield ChunkDerivatives(a, rec.pos, rec.valid, s * rec.live[..., None], w)
+            suffix = behind - torch.cumsum(wf, dim=2)  # colour composited behind each Gaussian
+            # s_c = alpha (T f_c - suffix_c / (1 - alpha)) = w f_c - alpha / (1 - alpha) suffix_c
+            odds = rec.alpha / (1 - rec.alpha)
+            s = wf.sub_(suffix.mul_(odds[..., None])).mul_(rec.live[..., None])  # 0 where clamped
+            yield ChunkDerivatives(a, rec.pos, rec.valid, s, w)
 
 
 def feature_fisher(walk: ViewWalk, n: int) -> Tensor:
-    """G [N, 9, 9] float64: sum over pixels and channels of d I / d features outer products."""
-    G = torch.zeros(n, 9, 9, dtype=torch.float64, device=walk.phi.device)
+    """G [N, 9, 9] float64: sum over pixels and channels of d I / d features outer products.
+
+    Pixel moments are stored per intersection (each lies in exactly one chunk), then mapped to
+    feature space with the exponent basis B in one batched step and summed per Gaussian.
+    """
+    num, dtype, device = walk.bins.gauss_ids.numel(), walk.phi.dtype, walk.phi.device
+    m4 = torch.zeros(num, walk.mono.shape[1], dtype=dtype, device=device)
+    m2 = torch.zeros(num, 6, 3, dtype=dtype, device=device)
+    w2 = torch.zeros(num, dtype=dtype, device=device)
     for ch in walk.chunks():
-        s, w = ch.s, ch.w
-        m4 = torch.einsum("tpk,pm->tkm", (s * s).sum(-1), walk.mono)  # [Ta, K, 15]
-        m2 = torch.einsum("tpkc,pj->tkjc", s * w[..., None], walk.phi)  # [Ta, K, 6, 3]
-        w2 = (w * w).sum(1)  # [Ta, K]
-        bk = walk.basis[ch.pos]  # [Ta, K, 6, 6]
-        local = w.new_zeros(*ch.pos.shape, 9, 9)
-        local[..., :6, :6] = bk @ m4[..., walk.pair] @ bk.transpose(-1, -2)
-        cross = bk @ m2
-        local[..., :6, 6:] = cross
-        local[..., 6:, :6] = cross.transpose(-1, -2)
-        local[..., 6:, 6:] = torch.diag_embed(w2[..., None].expand(*w2.shape, 3))
         keep = ch.valid.reshape(-1)
-        ids = walk.bins.gauss_ids[ch.pos.reshape(-1)[keep]]
-        G.index_add_(0, ids, local.reshape(-1, 9, 9)[keep].double())
+        pos = ch.pos.reshape(-1)[keep]
+        s, w = ch.s, ch.w
+        m4[pos] = torch.einsum("tpk,pm->tkm", s.square().sum(-1), walk.mono).reshape(-1, m4.shape[1])[keep]
+        m2[pos] = torch.einsum("tpkc,pj->tkjc", s * w[..., None], walk.phi).reshape(-1, 6, 3)[keep]
+        w2[pos] = w.square().sum(1).reshape(-1)[keep]
+    basis = walk.basis
+    geo = (basis @ m4[:, walk.pair] @ basis.transpose(-1, -2)).double()  # [I, 6, 6]
+    cross = (basis @ m2).double()  # [I, 6, 3]
+    ids = walk.bins.gauss_ids
+    G = torch.zeros(n, 9, 9, dtype=torch.float64, device=device)
+    geo_sum = torch.zeros(n, 6, 6, dtype=torch.float64, device=device).index_add_(0, ids, geo)
+    cross_sum = torch.zeros(n, 6, 3, dtype=torch.float64, device=device).index_add_(0, ids, cross)
+    w2_sum = torch.zeros(n, dtype=torch.float64, device=device).index_add_(0, ids, w2.double())
+    G[:, :6, :6] = geo_sum
+    G[:, :6, 6:] = cross_sum
+    G[:, 6:, :6] = cross_sum.transpose(1, 2)
+    G[:, 6:, 6:] = torch.diag_embed(w2_sum[:, None].expand(n, 3))
     return G
 
 

@@ -1,0 +1,128 @@
+"""Evaluation protocols of the paper: which views are the candidate pool, the test set, the
+initial views and the probe pool, and the acquisition schedule.
+
+- ``global``: Blender: the official train split is the pool, the full test split is the test set;
+  COLMAP scenes: the LLFF hold-out (every 8th image in name order) is the test set, the rest the pool.
+- ``goal``: a target manifold (default: the 120-degree clockwise sector). Blender: test views
+  restricted to the manifold, the whole train split as pool; COLMAP: the LLFF hold-out applied to
+  the views inside the manifold gives the test set, all remaining views form the pool. Probes are
+  drawn from the pool views inside the manifold.
+- ``sparse``: the global split with a 10-view budget (2 initial views, +1 per round).
+Initial views are spread uniformly in azimuth around the up axis (2 for Blender, 4 for real scenes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from pipeline.cameras import Cameras
+from pipeline.data.manifolds import SectorManifold, azimuths_deg, estimate_up, manifold_from_dict, member_ids
+from pipeline.data.scene import Scene
+
+KINDS = ("global", "goal", "sparse")
+
+
+@dataclass
+class ProtocolConfig:
+    kind: str = "global"
+    initial_views: int | None = None      # None: 2 for Blender, 4 for real scenes
+    budget: int | None = None             # total views; None: 10 for Blender/sparse, 20 otherwise
+    iterations_per_view: int = 100        # the schedule: one view every E iterations
+    probes: int | float | None = None     # K, or a fraction of the views; None: 25 / 1/8
+    manifold: dict = field(default_factory=lambda: {"kind": "sector", "start_deg": 0.0,
+                                                     "width_deg": 120.0, "clockwise": True})
+    llff_hold: int = 8
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"protocol kind must be one of {KINDS}, got {self.kind!r}")
+
+
+@dataclass
+class ProtocolViews:
+    """View ids index ``pool_split`` / ``test_split`` of the scene."""
+
+    pool_split: str
+    pool_ids: list[int]          # candidates (initial views excluded)
+    initial_ids: list[int]
+    test_split: str
+    test_ids: list[int]
+    probe_ids: list[int]         # pool views the probes are drawn from
+    budget: int
+    probes: int | float
+    up: list[float]
+
+    @property
+    def rounds(self) -> int:
+        return self.budget - len(self.initial_ids)
+
+
+def scene_up(scene: Scene, cameras: Cameras) -> torch.Tensor:
+    """Blender-layout scenes are z-up; real scenes get the up axis estimated from the cameras."""
+    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if scene.format == "blender" else estimate_up(cameras)
+
+
+def uniform_initial(cameras: Cameras, ids: list[int], count: int, up: torch.Tensor) -> list[int]:
+    """``count`` ids spread evenly in azimuth (nearest unused view to each target angle)."""
+    if count > len(ids):
+        raise ValueError(f"initial_views={count} exceeds the pool of {len(ids)} views")
+    az = azimuths_deg(cameras, up, cameras.centers.double().mean(0))
+    chosen: list[int] = []
+    for k in range(count):
+        target = k * 360.0 / count
+        gap = ((az - target + 180) % 360 - 180).abs()
+        for i in torch.argsort(gap, stable=True).tolist():
+            if ids[i] not in chosen:
+                chosen.append(ids[i])
+                break
+    return chosen
+
+
+def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
+    blender = scene.format == "blender"
+    real_default = not blender and cfg.kind != "sparse"
+    initial = cfg.initial_views if cfg.initial_views is not None else (4 if real_default else 2)
+    budget = cfg.budget if cfg.budget is not None else (20 if real_default else 10)
+    probes = cfg.probes if cfg.probes is not None else (25 if blender else 0.125)
+    if blender:
+        pool_split, test_split = "train", "test"
+        pool_all = list(range(len(scene.split("train"))))
+        test_all = list(range(len(scene.split("test"))))
+    else:
+        pool_split = test_split = "all"
+        n = len(scene.split("all"))
+        test_all = [i for i in range(n) if i % cfg.llff_hold == 0]
+        pool_all = [i for i in range(n) if i % cfg.llff_hold != 0]
+    pool_cams = scene.split(pool_split).cameras
+    up = scene_up(scene, scene.all_cameras())
+    probe_pool = pool_all
+    if cfg.kind == "goal":
+        manifold = manifold_from_dict(cfg.manifold)
+        if isinstance(manifold, SectorManifold) and manifold.up is None:
+            manifold.up = up.tolist()
+        manifold = manifold.resolve(scene.all_cameras())
+        if blender:
+            test_cams = scene.split("test").cameras
+            test_all = member_ids(manifold, test_cams[test_all], test_all)
+            probe_pool = member_ids(manifold, pool_cams[pool_all], pool_all)
+        else:
+            inside = member_ids(manifold, pool_cams, list(range(len(pool_cams))))
+            test_all = inside[::cfg.llff_hold]
+            held = set(test_all)
+            pool_all = [i for i in range(len(pool_cams)) if i not in held]
+            probe_pool = [i for i in inside if i not in held]
+        if not test_all:
+            raise ValueError(f"protocol 'goal': the target manifold {cfg.manifold} holds no test view")
+        if not probe_pool:
+            raise ValueError(f"protocol 'goal': the target manifold {cfg.manifold} holds no pool view to probe")
+    if not test_all:
+        raise ValueError(f"protocol {cfg.kind!r}: the test set is empty")
+    init = uniform_initial(pool_cams[pool_all], pool_all, initial, up)
+    if budget <= initial:
+        raise ValueError(f"budget={budget} must exceed initial_views={initial}")
+    pool = [i for i in pool_all if i not in set(init)]
+    return ProtocolViews(pool_split, pool, init, test_split, test_all,
+                         [i for i in probe_pool if i not in set(init)] or probe_pool, budget, probes,
+                         up.tolist())

@@ -1,0 +1,174 @@
+"""COLMAP reader, target manifolds, protocols and the pipeline-data CLI."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
+from pipeline.data.cli import main as data_cli
+from pipeline.data.colmap import observations, read_colmap
+from pipeline.data.images import DataError
+from pipeline.data.manifolds import (PoseListManifold, RegionManifold, SectorManifold, estimate_up,
+                                     manifold_from_dict, member_ids)
+from pipeline.data.protocols import ProtocolConfig, build_protocol
+from pipeline.data.synthetic import generate
+from tests.conftest import shared_scene
+
+
+@pytest.fixture(scope="module")
+def bonsai():
+    return read_colmap(shared_scene("colmap", "bonsai"))
+
+
+def test_bonsai_counts_llff_split_and_rescaled_intrinsics(bonsai):
+    assert {k: len(v) for k, v in bonsai.splits.items()} == {"all": 292, "train": 255, "test": 37}
+    cams = bonsai.split("all").cameras
+    assert (cams.width, cams.height) == (400, 266)
+    assert cams.Ks[0, 0, 0].item() == pytest.approx(817.87785045 / 2, rel=1e-5)
+    assert cams.Ks[0, 1, 2].item() == pytest.approx(266.0 / 2 * 266 / 266, rel=1e-5)
+    assert bonsai.points.shape == (87169, 3) and bonsai.split("all").images[0].shape == (266, 400, 3)
+
+
+def test_bonsai_points_land_on_their_observations(bonsai):
+    names = bonsai.split("all").names
+    cams = bonsai.split("all").cameras
+    for index in (0, 100, 250):
+        xy, xyz = observations(shared_scene("colmap", "bonsai"), names[index])
+        vm, k = cams.viewmats[index].double(), cams.Ks[index].double()
+        p = xyz @ vm[:3, :3].T + vm[:3, 3]
+        uv = (p @ k.T)[:, :2] / p[:, 2:]
+        err = (uv - xy * 0.5).norm(dim=1)  # observations are at the model's 800x532
+        assert len(err) > 100 and torch.quantile(err, 0.95) < 1.0
+
+
+def write_text_model(root, camera_line, image_name="a.png", make_image=True):
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text(camera_line + "\n")
+    (sparse / "images.txt").write_text(f"1 1 0 0 0 0 0 3 1 {image_name}\n\n")
+    (sparse / "points3D.txt").write_text("")
+    (root / "images").mkdir()
+    if make_image:
+        from PIL import Image
+        Image.new("RGB", (40, 30), (10, 20, 30)).save(root / "images" / image_name)
+    return root
+
+
+def test_text_model_with_pinhole_reads(tmp_path):
+    scene = read_colmap(write_text_model(tmp_path / "s", "1 PINHOLE 80 60 50 50 40 30"))
+    cams = scene.split("all").cameras
+    assert (cams.width, cams.height) == (40, 30)
+    assert cams.Ks[0, 0, 0].item() == pytest.approx(25.0)
+    assert scene.points is None
+
+
+@pytest.mark.parametrize("line,match", [
+    ("1 OPENCV 80 60 50 50 40 30 0.1 0 0 0", "distortion"),
+    ("1 FULL_OPENCV 80 60 50 50 40 30 0 0 0 0 0 0 0 0", "unsupported model"),
+])
+def test_distortion_and_unsupported_models_are_refused(tmp_path, line, match):
+    with pytest.raises(DataError, match=match):
+        read_colmap(write_text_model(tmp_path / "s", line))
+
+
+def test_missing_model_image_and_malformed_model(tmp_path):
+    with pytest.raises(DataError, match="no COLMAP model"):
+        (tmp_path / "empty").mkdir()
+        read_colmap(tmp_path / "empty")
+    with pytest.raises(DataError, match="a.png.*missing"):
+        read_colmap(write_text_model(tmp_path / "m", "1 PINHOLE 80 60 50 50 40 30", make_image=False))
+    with pytest.raises(DataError, match="cannot read the COLMAP model"):
+        read_colmap(write_text_model(tmp_path / "bad", "1 PINHOLE eighty 60 50 50 40 30"))
+
+
+def ring(az_deg, up_z=True):
+    az = torch.tensor(az_deg, dtype=torch.float64) * math.pi / 180
+    eyes = torch.stack([3 * torch.cos(az), 3 * torch.sin(az), torch.full_like(az, 1.0)], 1)
+    vm = look_at(eyes, torch.zeros_like(eyes), torch.tensor([0, 0, 1.0], dtype=torch.float64))
+    return Cameras(vm.float(), intrinsics_from_fov(0.9, 32, 32, len(az_deg)), 32, 32)
+
+
+def test_sector_membership_on_hand_made_poses():
+    az = list(range(15, 360, 30))  # no camera on a sector boundary
+    cams = ring(az)
+    cw = SectorManifold(0, 120).resolve(cams)  # clockwise from +x seen from above: 360 -> 240
+    assert [a for a, m in zip(az, cw.contains(cams).tolist()) if m] == [255, 285, 315, 345]
+    ccw = SectorManifold(0, 120, clockwise=False).resolve(cams)
+    assert [a for a, m in zip(az, ccw.contains(cams).tolist()) if m] == [15, 45, 75, 105]
+    shifted = SectorManifold(90, 60).resolve(cams)
+    assert [a for a, m in zip(az, shifted.contains(cams).tolist()) if m] == [45, 75]
+
+
+def test_up_estimated_from_cameras():
+    up = estimate_up(ring(list(range(0, 360, 45))))
+    assert float(up @ torch.tensor([0, 0, 1.0], dtype=torch.float64)) > math.cos(math.radians(5))
+
+
+def test_region_and_pose_list_manifolds_and_serialisation():
+    cams = ring([0, 90, 180])
+    region = RegionManifold(center=[-4.0, 0.0, 1.0], radius=0.1)  # behind the az=180 camera
+    assert region.contains(cams).tolist() == [True, False, False]
+    poses = PoseListManifold([7, 9])
+    assert member_ids(poses, cams, [7, 8, 9]) == [7, 9]
+    for m in (SectorManifold(10, 90), region, poses):
+        assert manifold_from_dict(json.loads(json.dumps(m.to_dict()))) == m
+    with pytest.raises(ValueError, match="kind"):
+        manifold_from_dict({"kind": "cone"})
+    with pytest.raises(ValueError, match="bad keys"):
+        manifold_from_dict({"kind": "sector", "angle": 3})
+    with pytest.raises(ValueError, match="width_deg"):
+        SectorManifold(0, 0)
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    from pipeline.data.blender import read_blender
+    return read_blender(generate(tmp_path_factory.mktemp("g") / "s", seed=1, size=16, n_train=40, n_test=60))
+
+
+def test_global_and_goal_protocols_on_blender_layout(generated):
+    g = build_protocol(generated, ProtocolConfig("global"))
+    assert len(g.initial_ids) == 2 and len(g.pool_ids) == 38 and len(g.test_ids) == 60
+    assert g.budget == 10 and g.rounds == 8 and g.probes == 25
+    goal = build_protocol(generated, ProtocolConfig("goal"))
+    sector = SectorManifold(0, 120, up=[0, 0, 1]).resolve(generated.all_cameras())
+    test_cams = generated.split("test").cameras
+    inside = set(member_ids(sector, test_cams, list(range(60))))
+    assert set(goal.test_ids) == inside and 5 < len(inside) < 40
+    assert len(goal.pool_ids) == 38  # the whole train split stays the pool
+    train_inside = set(member_ids(sector, generated.split("train").cameras, list(range(40))))
+    assert set(goal.probe_ids) <= train_inside
+
+
+def test_goal_protocol_on_colmap_applies_llff_inside_the_sector(bonsai):
+    views = build_protocol(bonsai, ProtocolConfig("goal"))
+    assert views.pool_split == views.test_split == "all"
+    assert len(views.initial_ids) == 4 and views.budget == 20
+    assert not set(views.test_ids) & set(views.pool_ids)
+    assert len(views.test_ids) + len(views.pool_ids) + 4 == 292
+    sparse = build_protocol(bonsai, ProtocolConfig("sparse"))
+    assert sparse.budget == 10 and len(sparse.initial_ids) == 2 and len(sparse.test_ids) == 37
+
+
+def test_empty_sector_is_a_clear_error(generated):
+    cfg = ProtocolConfig("goal", manifold={"kind": "sector", "start_deg": 0, "width_deg": 1e-6})
+    with pytest.raises(ValueError, match="holds no test view"):
+        build_protocol(generated, cfg)
+    with pytest.raises(ValueError, match="protocol kind"):
+        ProtocolConfig("local")
+
+
+def test_cli_inspect_and_errors(tmp_path, capsys, generated):
+    assert data_cli(["inspect", str(generated.root)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["format"] == "blender" and info["splits"] == {"train": 40, "test": 60}
+    assert data_cli(["inspect", str(tmp_path / "nope")]) == 1
+    assert "nope" in capsys.readouterr().err
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "transforms_train.json").write_text("[1, 2")
+    assert data_cli(["inspect", str(broken)]) == 1
+    err = capsys.readouterr().err
+    assert "transforms_train.json" in err and "malformed" in err and "Traceback" not in err
