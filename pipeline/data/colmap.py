@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pipeline.cameras import Cameras
@@ -101,8 +102,8 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
               "train": Split(cams[train], store.subset(train), [names[i] for i in train]),
               "test": Split(cams[test], store.subset(test), [names[i] for i in test])}
     pts = list(rec.points3D.values())
-    points = torch.tensor([p.xyz for p in pts], dtype=torch.float32) if pts else None
-    colors = torch.tensor([p.color for p in pts], dtype=torch.float32) / 255 if pts else None
+    points = torch.from_numpy(np.array([p.xyz for p in pts], dtype=np.float32)) if pts else None
+    colors = torch.from_numpy(np.array([p.color for p in pts], dtype=np.float32)) / 255 if pts else None
     return Scene(root.name, "colmap", root, splits, bg, points, colors,
                  info={"sparse": str(sparse), "model_size": [int(rec.cameras[entries[0].camera_id].width),
                                                              int(rec.cameras[entries[0].camera_id].height)]})
