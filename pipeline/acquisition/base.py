@@ -15,6 +15,7 @@ from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec, view_fisher
+from pipeline.memory import peak_rss_mb
 from pipeline.splat import Gaussians, RenderSettings
 
 
@@ -57,18 +58,6 @@ class Strategy(Protocol):
     name: str
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection: ...
-
-
-def peak_rss_mb() -> float:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    import resource
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import os
-import resource
 import statistics
 import time
 from typing import Callable
+
+from pipeline.memory import peak_rss_mb, reset_peak_rss  # noqa: F401 (re-exported)
 
 
 def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
@@ -19,27 +20,6 @@ def median_seconds(fn: Callable[[], object], repeats: int, warmup: int = 1) -> f
         fn()
         times.append(time.perf_counter() - start)
     return statistics.median(times)
-
-
-def reset_peak_rss() -> None:
-    """Reset the kernel's peak-RSS mark (Linux: VmHWM) so the next reading is per case."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory since the last reset (Linux), else since process start, in MiB."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def available_memory_mb() -> float:
