@@ -56,8 +56,9 @@ def main(argv=None) -> dict:
     idx = np.linspace(0, len(train) - 1, args.views).round().astype(int).tolist()
     test_idx = np.linspace(0, len(test) - 1, args.test_views).round().astype(int).tolist()
     base = cpu_preset()
-    cfg = base.with_changes(iterations=args.iterations, seed=args.seed,
-                            densify=replace(base.densify, max_gaussians=args.max_gaussians))
+    scaled = base.scaled_to(args.iterations)
+    cfg = scaled.with_changes(seed=args.seed,
+                              densify=replace(scaled.densify, max_gaussians=args.max_gaussians))
     lo, hi = scene.bounds()
     init = random_in_box(cfg.init_points, lo, hi, cfg.sh_degree, seed=args.seed)
     trainer = Trainer(init, train.cameras[idx], train.images.stack(idx), cfg, scene.background)

@@ -128,3 +128,19 @@ def test_short_fit_on_lego_clears_psnr_bar():
     value = evaluate_psnr(trainer.gaussians, test.cameras[test_idx], test.images.stack(test_idx),
                           scene.background)
     assert value > 19.0  # measured 22.1 dB
+
+
+def test_scaled_schedules_and_no_opacity_reset_at_the_end():
+    from pipeline.fit import cpu_preset
+    cfg = cpu_preset().scaled_to(1000)
+    assert cfg.iterations == 1000 and cfg.densify.stop == 500 and cfg.densify.opacity_reset_interval == 333
+    g = random_scene(50, seed=0)
+    cams = sphere_cameras(2, 16, 16)
+    with torch.no_grad():
+        imgs = render(g, cams).rgb
+    late = tiny_preset().with_changes(iterations=20, densify=DensifyConfig(
+        start=1000, stop=1000, opacity_reset_interval=20))  # a reset due at the very last step
+    t = Trainer(g, cams, imgs, late)
+    before = torch.sigmoid(t.params["logit_opacities"].detach()).max()
+    t.train(20)
+    assert torch.sigmoid(t.params["logit_opacities"].detach()).max() > 0.5 * before

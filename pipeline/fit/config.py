@@ -51,6 +51,18 @@ class FitConfig:
     def with_changes(self, **changes) -> "FitConfig":
         return replace(self, **changes)
 
+    def scaled_to(self, iterations: int) -> "FitConfig":
+        """The same recipe over ``iterations`` steps: every schedule scales proportionally."""
+        if iterations <= 0:
+            raise ValueError(f"iterations must be positive, got {iterations}")
+        f = iterations / self.iterations
+        d = self.densify
+        scale = lambda x: max(1, round(x * f))  # noqa: E731
+        return replace(self, iterations=iterations, sh_degree_interval=scale(self.sh_degree_interval),
+                       densify=replace(d, start=scale(d.start), stop=scale(d.stop),
+                                       interval=scale(d.interval),
+                                       opacity_reset_interval=scale(d.opacity_reset_interval)))
+
 
 def paper_preset() -> FitConfig:
     """3DGS defaults: 30k iterations at full resolution, no Gaussian cap."""

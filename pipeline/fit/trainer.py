@@ -124,7 +124,9 @@ class Trainer:
             self.params = densify_and_prune(self.params, self.optimizer, self.stats, dcfg, self.extent,
                                             self.step > dcfg.opacity_reset_interval, self.generator)
             self.stats = DensifyStats.zeros(self.params["means"].shape[0], self.stats.grad_sum)
-        if self.step < dcfg.stop and self.step % dcfg.opacity_reset_interval == 0:
+        # a reset in the last tenth of the run would leave no time to recover the opacities
+        late = self.step > 0.9 * self.config.iterations
+        if self.step < dcfg.stop and self.step % dcfg.opacity_reset_interval == 0 and not late:
             self.reset_opacity()
 
     def train(self, iterations: int, progress: bool = False, desc: str = "fit") -> StepInfo | None:
