@@ -22,7 +22,7 @@ from pipeline.cameras import Cameras
 from pipeline.fisher.features import PARAM_GROUPS, feature_jacobian, param_layout
 from pipeline.splat import Gaussians, RenderSettings
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
-                                      outside_image, tile_monomials)
+                                      outside_image, tile_monomials, untile)
 
 # exponents (of x, y) of phi = (x^2, xy, y^2, x, y, 1)
 PHI_EXPONENTS = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
@@ -173,7 +173,6 @@ def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
         term = ch.s ** 2 * hq[..., None] + 2 * ch.s * w[..., None] * hl \
             + (w * w)[..., None] * col[pos][:, None]
         img.index_add_(0, ch.active, term.sum(2).double())
-    from pipeline.splat.rasterize import untile
     return untile(img, walk.bins, walk.width, walk.height)
 
 
