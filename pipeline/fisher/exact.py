@@ -130,8 +130,12 @@ def feature_fisher(walk: ViewWalk, n: int) -> Tensor:
         keep = ch.valid.reshape(-1)
         pos = ch.pos.reshape(-1)[keep]
         s, w = ch.s, ch.w
-        m4[pos] = torch.einsum("tpk,pm->tkm", s.square().sum(-1), walk.mono).reshape(-1, m4.shape[1])[keep]
-        m2[pos] = torch.einsum("tpkc,pj->tkjc", s * w[..., None], walk.phi).reshape(-1, 6, 3)[keep]
+        ta, pix, k = w.shape
+        # left-multiplying by the small [15, P] / [6, P] tables keeps the big tensors in place
+        sq = torch.matmul(walk.mono.T, s.square().sum(-1))  # [Ta, 15, K]
+        m4[pos] = sq.transpose(1, 2).reshape(-1, m4.shape[1])[keep]
+        sw = torch.matmul(walk.phi.T, (s * w[..., None]).reshape(ta, pix, k * 3))  # [Ta, 6, K*3]
+        m2[pos] = sw.reshape(ta, 6, k, 3).permute(0, 2, 1, 3).reshape(-1, 6, 3)[keep]
         w2[pos] = w.square().sum(1).reshape(-1)[keep]
     basis = walk.basis
     geo = (basis @ m4[:, walk.pair] @ basis.transpose(-1, -2)).double()  # [I, 6, 6]
