@@ -63,16 +63,6 @@ class Cameras:
         rot, trans = self.viewmats[:, :3, :3], self.viewmats[:, :3, 3]
         return -(rot.transpose(1, 2) @ trans[..., None])[..., 0]
 
-    def scaled(self, factor: float) -> "Cameras":
-        """Cameras for images resized by ``factor`` (intrinsics scaled, pixel-centre aware)."""
-        width, height = round(self.width * factor), round(self.height * factor)
-        sx, sy = width / self.width, height / self.height
-        ks = self.Ks.clone()
-        ks[:, 0, :] *= sx
-        ks[:, 1, :] *= sy
-        ks[:, 2, :] = self.Ks[:, 2, :]
-        return Cameras(self.viewmats, ks, width, height)
-
     @staticmethod
     def cat(batches: "list[Cameras]") -> "Cameras":
         first = batches[0]

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
-from pipeline.fisher.features import PARAM_GROUPS, feature_jacobian, param_layout
+from pipeline.fisher.features import PARAM_GROUPS, feature_jacobian
 from pipeline.splat import Gaussians, RenderSettings
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
                                       outside_image, tile_monomials, untile)
@@ -217,7 +217,3 @@ def predictive_variance_maps(gaussians: Gaussians, cameras: Cameras, posterior_v
         cov = torch.einsum("nip,np,njp->nij", A, posterior_var.double(), A)
         maps.append(variance_map(walk, cov))
     return torch.stack(maps)
-
-
-def flat_names(gaussians: Gaussians, spec: FisherSpec = FisherSpec()) -> list[tuple[str, int]]:
-    return param_layout(gaussians, spec.groups)

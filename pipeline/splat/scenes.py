@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import torch
-from torch import Tensor
 
 from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
 from pipeline.splat.gaussians import Gaussians, num_sh_bases
@@ -57,8 +56,3 @@ def sphere_cameras(count: int, width: int, height: int, radius: float = 3.0, see
     viewmats = look_at(eyes, torch.zeros_like(eyes), torch.tensor([0, 0, 1.0], dtype=torch.float64))
     return Cameras(viewmats.to(dtype), intrinsics_from_fov(fov_x, width, height, count, dtype=dtype),
                    width, height)
-
-
-def scene_bounds(gaussians: Gaussians) -> tuple[Tensor, Tensor]:
-    means = gaussians.means.detach()
-    return means.min(0).values, means.max(0).values
