@@ -46,7 +46,8 @@ def bench_case(size: int, n: int, repeats: int, seed: int = 0, max_dense_pairs: 
             "fwd_bwd_s": round(fb, 4), "dense_fwd_bwd_s": None if dense is None else round(dense, 4),
             "speedup_vs_dense": None if dense is None else round(dense / fb, 1),
             "dense_checkpointed": block is not None,
-            "dense_skipped": "pairs > --max-dense-pairs" if too_slow else None, "peak_rss_mb": round(peak, 1), "repeats": repeats, "threads": torch.get_num_threads(),
+            "dense_skipped": "pairs > --max-dense-pairs" if too_slow else None,
+            "peak_rss_mb": round(peak, 1), "repeats": repeats, "threads": torch.get_num_threads(),
             "load_avg_1m": round(machine_load(), 2)}
 
 

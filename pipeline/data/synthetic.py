@@ -118,7 +118,8 @@ def _sphere(o, d, center, radius, tex) -> Hit:
     t = -b - torch.sqrt(disc.clamp_min(0))
     ok = (disc > 0) & (t > 1e-6)
     n = torch.nn.functional.normalize(o + t[:, None] * d - center, dim=1)
-    uv = torch.stack([torch.atan2(n[:, 1], n[:, 0]) / (2 * math.pi) + 0.5, torch.acos(n[:, 2].clamp(-1, 1)) / math.pi], 1)
+    uv = torch.stack([torch.atan2(n[:, 1], n[:, 0]) / (2 * math.pi) + 0.5,
+                      torch.acos(n[:, 2].clamp(-1, 1)) / math.pi], 1)
     return Hit(torch.where(ok, t, torch.full_like(t, math.inf)), n, uv, torch.full_like(t, tex, dtype=torch.long))
 
 
@@ -135,7 +136,8 @@ def _cylinder(o, d, x, y, radius, z0, z1, tex) -> Hit:
     p = o + t[:, None] * d
     n = torch.nn.functional.normalize(torch.stack([p[:, 0] - x, p[:, 1] - y, torch.zeros_like(t)], 1), dim=1)
     uv = torch.stack([torch.atan2(n[:, 1], n[:, 0]) / (2 * math.pi) + 0.5, (z1 - z) / (z1 - z0)], 1)
-    return Hit(torch.where(ok, t, torch.full_like(t, math.inf)), n, uv.clamp(0, 1), torch.full_like(t, tex, dtype=torch.long))
+    return Hit(torch.where(ok, t, torch.full_like(t, math.inf)), n, uv.clamp(0, 1),
+               torch.full_like(t, tex, dtype=torch.long))
 
 
 def _v(*xs) -> Tensor:

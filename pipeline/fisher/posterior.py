@@ -59,7 +59,8 @@ def log_det_information(s: Tensor, fisher: Tensor, tau: float = 1.0) -> Tensor:
     if fisher.ndim == 1:
         return torch.log1p(s * fisher.double() / tau ** 2).sum()
     root = s.sqrt()
-    m = torch.eye(len(s), dtype=torch.float64, device=s.device) + root[:, None] * fisher.double() * root[None, :] / tau ** 2
+    eye = torch.eye(len(s), dtype=torch.float64, device=s.device)
+    m = eye + root[:, None] * fisher.double() * root[None, :] / tau ** 2
     return torch.linalg.slogdet(m)[1]
 
 

@@ -220,11 +220,12 @@ def composite_forward(psi: Tensor, feats: Tensor, bins: TileBins, phi: Tensor, d
 
 
 class _TileComposite(torch.autograd.Function):
-    """Front-to-back compositing over tiles with an analytic, recomputing backward.
+    """Front-to-back compositing over tiles with an analytic backward.
 
     Forward keeps, per chunk, the alphas, transmittances and live mask ([Ta, P, K] each; about
-    9 bytes per (pixel, listed Gaussian) walked) and the features accumulated before the chunk. For an included Gaussian k of a pixel, with
-    q_k = dL/dacc . f_k:  dL/dalpha_k = T_k q_k - (sum_{i>k} w_i q_i + dL/dT_final T_final) / (1 - alpha_k).
+    9 bytes per (pixel, listed Gaussian) walked) and the features accumulated before the chunk.
+    For an included Gaussian k of a pixel, with q_k = dL/dacc . f_k:
+        dL/dalpha_k = T_k q_k - (sum_{i>k} w_i q_i + dL/dT_final T_final) / (1 - alpha_k).
     A terminated pixel carries T = 0 in the walk; its final transmittance is kept aside.
     """
 
