@@ -71,6 +71,16 @@ def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) ->
     return out
 
 
+def pool_and_train_fishers(ctx: SelectionContext, order: list[int],
+                           spec: FisherSpec) -> tuple[Tensor, Tensor]:
+    """Fisher of the candidates in ``order`` [M, D] and H_train [D] (the sum over the taken views,
+    recomputed with the current model; zeros when nothing is taken yet)."""
+    cands = fisher_vectors(ctx, ctx.candidates[order], spec)
+    if len(ctx.taken) == 0:
+        return cands, torch.zeros_like(cands[0])
+    return cands, fisher_vectors(ctx, ctx.taken, spec).sum(0)
+
+
 def greedy_pick(candidate_fishers: Tensor, h_train: Tensor, score: Callable[[Tensor, Tensor], Tensor],
                 count: int, maximize: bool) -> tuple[list[int], Tensor]:
     """Greedy batch selection with the conditional update H <- H + F_pick between picks.
@@ -116,10 +126,7 @@ def reduce_pool(candidate_ids: list[int], keep_fraction: float, generator: torch
     """Candidate-pool reduction: keep a seeded random ``keep_fraction`` (at least one) of the pool."""
     if not 0 < keep_fraction <= 1:
         raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
-    ids = sorted(candidate_ids)
-    keep = max(1, round(len(ids) * keep_fraction))
-    order = torch.randperm(len(ids), generator=generator)[:keep].sort().values
-    return [ids[i] for i in order.tolist()]
+    return seeded_subset(candidate_ids, max(1, round(len(candidate_ids) * keep_fraction)), generator)
 
 
 def probe_count(k: int | float, pool_size: int) -> int:
@@ -134,8 +141,14 @@ def probe_count(k: int | float, pool_size: int) -> int:
 
 def sample_probes(pool_ids: list[int], k: int | float, generator: torch.Generator) -> list[int]:
     """K probe view ids drawn uniformly without replacement from the target-manifold pool."""
-    ids = sorted(pool_ids)
-    if not ids:
+    if not pool_ids:
         raise ValueError("sample_probes: the target manifold has no views to probe")
-    count = probe_count(k, len(ids))
-    return [ids[i] for i in torch.randperm(len(ids), generator=generator)[:count].sort().values.tolist()]
+    return seeded_subset(pool_ids, probe_count(k, len(pool_ids)), generator)
+
+
+def seeded_subset(ids: list[int], count: int, generator: torch.Generator) -> list[int]:
+    """``count`` of ``ids`` drawn uniformly without replacement, sorted; independent of the order
+    ``ids`` come in (the draw indexes the sorted ids)."""
+    ids = sorted(ids)
+    picked = torch.randperm(len(ids), generator=generator)[:count].sort().values
+    return [ids[i] for i in picked.tolist()]

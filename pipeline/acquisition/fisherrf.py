@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
+from pipeline.acquisition.base import (Selection, SelectionContext, greedy_pick, pool_and_train_fishers,
                                        timed_selection)
 from pipeline.fisher.exact import FisherSpec
 
@@ -22,7 +22,6 @@ class FisherRFStrategy:
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         def run(order):
-            cands = fisher_vectors(ctx, ctx.candidates[order], self.spec)
-            h = fisher_vectors(ctx, ctx.taken, self.spec).sum(0) if len(ctx.taken) else cands[0] * 0
+            cands, h = pool_and_train_fishers(ctx, order, self.spec)
             return greedy_pick(cands, h, lambda h_, f: (f / (h_ + self.lam)).sum(-1), count, True)
         return timed_selection(ctx, run)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
-                                       timed_selection)
+                                       pool_and_train_fishers, timed_selection)
 from pipeline.fisher.exact import FisherSpec
 from pipeline.fisher.posterior import (goal_hessian, gopre_score, monte_carlo_score,
                                        posterior_variance, trace_score, updated_variance)
@@ -56,8 +56,7 @@ class GoPreStrategy:
             raise ValueError("gopre needs probe poses from the target manifold (ctx.probes)")
 
         def run(order):
-            cands = fisher_vectors(ctx, ctx.candidates[order], self.spec)
-            h = fisher_vectors(ctx, ctx.taken, self.spec).sum(0) if len(ctx.taken) else cands[0] * 0
+            cands, h = pool_and_train_fishers(ctx, order, self.spec)
             probes = fisher_vectors(ctx, ctx.probes, self.spec) if self.goal == "probes" else None
             return greedy_pick(cands, h, self._scorer(probes), count, maximize=False)
         return timed_selection(ctx, run)

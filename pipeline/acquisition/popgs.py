@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
+from pipeline.acquisition.base import (Selection, SelectionContext, greedy_pick, pool_and_train_fishers,
                                        timed_selection)
 from pipeline.fisher.exact import FisherSpec, view_factors
 
@@ -38,8 +38,7 @@ class PopGSStrategy:
         return timed_selection(ctx, lambda order: run(ctx, order, count))
 
     def _diag(self, ctx, order, count):
-        cands = fisher_vectors(ctx, ctx.candidates[order], self.spec)
-        h = fisher_vectors(ctx, ctx.taken, self.spec).sum(0) if len(ctx.taken) else cands[0] * 0
+        cands, h = pool_and_train_fishers(ctx, order, self.spec)
         return greedy_pick(cands, h, lambda h_, f: torch.log1p(f / (h_ + self.lam)).sum(-1), count, True)
 
     def _blocks(self, ctx, cameras):

@@ -22,7 +22,7 @@ from pipeline.cameras import Cameras
 from pipeline.fisher.features import PARAM_GROUPS, feature_jacobian
 from pipeline.splat import Gaussians, RenderSettings
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
-                                      outside_image, tile_monomials, untile)
+                                      local_means, outside_image, tile_monomials, untile)
 
 # exponents (of x, y) of phi = (x^2, xy, y^2, x, y, 1)
 PHI_EXPONENTS = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
@@ -94,12 +94,9 @@ class ViewWalk:
         self.acc, self.final, self.records = composite_forward(psi, self.colors, self.bins, self.phi,
                                                                done, settings.chunk)
         self.mono, self.pair = _moment_tables(ts, dtype, device)
-        tile = torch.repeat_interleave(torch.arange(self.bins.num_tiles, device=device),
-                                       self.bins.counts)
-        centre = torch.stack([(tile % self.bins.tiles_x) * ts + ts / 2,
-                              (tile // self.bins.tiles_x) * ts + ts / 2], -1).to(dtype)
         g = self.bins.gauss_ids
-        self.basis = _exponent_basis(proj.conics[g], proj.means2d[g] - centre, proj.opacities[g])
+        self.basis = _exponent_basis(proj.conics[g], local_means(self.bins, proj.means2d),
+                                     proj.opacities[g])
         self.behind_bg = self.final[..., None] * background.to(dtype)  # [T, P, 3]
 
     def chunks(self):

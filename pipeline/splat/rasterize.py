@@ -104,6 +104,14 @@ def tile_monomials(tile_size: int, dtype, device) -> Tensor:
     return torch.stack([x * x, x * y, y * y, x, y, torch.ones_like(x)], dim=-1)
 
 
+def local_means(bins: TileBins, means2d: Tensor) -> Tensor:
+    """[I, 2] each intersection's Gaussian mean relative to its tile's centre (pixels)."""
+    ts = bins.tile_size
+    tile = torch.repeat_interleave(torch.arange(bins.num_tiles, device=means2d.device), bins.counts)
+    centre = torch.stack([(tile % bins.tiles_x) * ts + ts / 2, (tile // bins.tiles_x) * ts + ts / 2], -1)
+    return means2d[bins.gauss_ids] - centre.to(means2d.dtype)
+
+
 def intersection_coeffs(bins: TileBins, means2d: Tensor, conics: Tensor,
                         opacities: Tensor) -> Tensor:
     """Exponent coefficients per (tile, Gaussian) intersection, so that for every pixel of the tile
@@ -111,12 +119,8 @@ def intersection_coeffs(bins: TileBins, means2d: Tensor, conics: Tensor,
 
     Differentiable (autograd) w.r.t. means2d [N, 2], conics [N, 3], opacities [N].
     """
-    ts = bins.tile_size
-    tile = torch.repeat_interleave(torch.arange(bins.num_tiles, device=means2d.device), bins.counts)
-    centre_u = ((tile % bins.tiles_x) * ts + ts / 2).to(means2d.dtype)
-    centre_v = ((tile // bins.tiles_x) * ts + ts / 2).to(means2d.dtype)
     g = bins.gauss_ids
-    mx, my = means2d[g, 0] - centre_u, means2d[g, 1] - centre_v
+    mx, my = local_means(bins, means2d).unbind(-1)
     a, b, c = conics[g].unbind(-1)
     log_o = torch.log(opacities[g])
     psi = torch.stack([-0.5 * a, -b, -0.5 * c, a * mx + b * my, b * mx + c * my,
