@@ -4,7 +4,7 @@ import importlib
 import sys
 
 COMMANDS = {"render": "pipeline.bench.render", "fisher": "pipeline.bench.fisher",
-            "select": "pipeline.bench.select"}
+            "select": "pipeline.bench.select", "episode": "pipeline.bench.episode"}
 
 
 def main() -> None:

@@ -12,20 +12,7 @@ import sys
 from pathlib import Path
 
 from pipeline.data.images import DataError
-
-
-def load_scene(path: Path, width: int | None = None):
-    """Read a Blender-layout or COLMAP scene, detected from its files."""
-    from pipeline.data.blender import read_blender
-    from pipeline.data.colmap import read_colmap
-
-    if not path.exists():
-        raise DataError(f"{path}: no such folder")
-    if (path / "transforms_train.json").exists():
-        return read_blender(path, width=width)
-    if (path / "sparse").exists():
-        return read_colmap(path, width=width)
-    raise DataError(f"{path}: neither a Blender scene (transforms_train.json) nor a COLMAP scene (sparse/)")
+from pipeline.data.load import load_scene
 
 
 def summary(path: Path) -> dict:

@@ -1,5 +1,5 @@
 """Evaluation protocols of the paper: which views are the candidate pool, the test set, the
-initial views and the probe pool, and the acquisition schedule.
+initial views, the probe pool and the budget (the schedule is part of the episode config).
 
 - ``global``: Blender: the official train split is the pool, the full test split is the test set;
   COLMAP scenes: the LLFF hold-out (every 8th image in name order) is the test set, the rest the pool.
@@ -29,11 +29,12 @@ class ProtocolConfig:
     kind: str = "global"
     initial_views: int | None = None      # None: 2 for Blender, 4 for real scenes
     budget: int | None = None             # total views; None: 10 for Blender/sparse, 20 otherwise
-    iterations_per_view: int = 100        # the schedule: one view every E iterations
     probes: int | float | None = None     # K, or a fraction of the views; None: 25 / 1/8
     manifold: dict = field(default_factory=lambda: {"kind": "sector", "start_deg": 0.0,
                                                      "width_deg": 120.0, "clockwise": True})
     llff_hold: int = 8
+    probe_manifold: dict | None = None    # draw probes from this manifold only (the paper's
+                                          # goal-metric misalignment ablation under ``global``)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -117,6 +118,14 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
             raise ValueError(f"protocol 'goal': the target manifold {cfg.manifold} holds no test view")
         if not probe_pool:
             raise ValueError(f"protocol 'goal': the target manifold {cfg.manifold} holds no pool view to probe")
+    if cfg.probe_manifold is not None:
+        probe_manifold = manifold_from_dict(cfg.probe_manifold)
+        if isinstance(probe_manifold, SectorManifold) and probe_manifold.up is None:
+            probe_manifold.up = up.tolist()
+        probe_manifold = probe_manifold.resolve(scene.all_cameras())
+        probe_pool = member_ids(probe_manifold, pool_cams[probe_pool], probe_pool)
+        if not probe_pool:
+            raise ValueError(f"protocol: probe_manifold {cfg.probe_manifold} holds no pool view")
     if not test_all:
         raise ValueError(f"protocol {cfg.kind!r}: the test set is empty")
     init = uniform_initial(pool_cams[pool_all], pool_all, initial, up)

@@ -21,6 +21,7 @@ class DensifyConfig:
     max_world_scale: float = 0.1     # * scene extent; applied after the first opacity reset
     opacity_reset_interval: int = 3000
     opacity_reset_value: float = 0.01
+    periodic_opacity_reset: bool = True  # False: only explicit resets (the active loop's policy)
     max_gaussians: int | None = None  # cap; None = unlimited (paper)
 
 

@@ -87,6 +87,26 @@ class Trainer:
         lr, t = self.config.lr, min(self.step / max(self.config.iterations, 1), 1.0)
         return self.extent * math.exp((1 - t) * math.log(lr.means_init) + t * math.log(lr.means_final))
 
+    def state_dict(self) -> dict:
+        """Everything needed to continue exactly where this trainer is (checkpointing)."""
+        return {"params": {k: v.detach().clone() for k, v in self.params.items()},
+                "optimizer": self.optimizer.state_dict(), "step": self.step, "extent": self.extent,
+                "generator": self.generator.get_state(), "order": list(self._order),
+                "stats": [self.stats.grad_sum, self.stats.count, self.stats.max_radii]}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a ``state_dict`` (the views are set separately, before this call)."""
+        order = list(state["order"])
+        self.params = {k: v.detach().clone().requires_grad_(True) for k, v in state["params"].items()}
+        for group in self.optimizer.param_groups:
+            group["params"] = [self.params[group["name"]]]
+        self.optimizer.state.clear()
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.step, self.extent = int(state["step"]), float(state["extent"])
+        self.generator.set_state(state["generator"])
+        self.stats = DensifyStats(*[t.clone() for t in state["stats"]])
+        self._order = order
+
     def reset_opacity(self, value: float | None = None) -> None:
         value = self.config.densify.opacity_reset_value if value is None else value
         self.params = reset_opacity(self.params, self.optimizer, value)
@@ -126,7 +146,8 @@ class Trainer:
             self.stats = DensifyStats.zeros(self.params["means"].shape[0], self.stats.grad_sum)
         # a reset in the last tenth of the run would leave no time to recover the opacities
         late = self.step > 0.9 * self.config.iterations
-        if self.step < dcfg.stop and self.step % dcfg.opacity_reset_interval == 0 and not late:
+        periodic = dcfg.periodic_opacity_reset and self.step % dcfg.opacity_reset_interval == 0
+        if self.step < dcfg.stop and periodic and not late:
             self.reset_opacity()
 
     def train(self, iterations: int, progress: bool = False, desc: str = "fit") -> StepInfo | None:

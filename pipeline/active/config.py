@@ -1,0 +1,80 @@
+"""What one episode runs: the fit recipe, the schedule, the post-selection policy, evaluation.
+
+The schedule follows the paper: with n views taken, train ``epochs_per_view`` passes over them
+(``epochs_per_view * n`` iterations), select, add; once the budget is reached, train until the
+fit recipe's total iteration count. Post-selection policies:
+
+- ``reset_opacity`` (the paper, default): clamp every opacity to the reset value, continue.
+- ``reload`` (FisherRF): restart from the initial Gaussians with fresh optimizer and schedules.
+- ``continue``: just keep training.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+from pipeline.data.protocols import ProtocolConfig
+from pipeline.fit.config import FitConfig, cpu_preset, paper_preset, tiny_preset
+
+POLICIES = ("reset_opacity", "reload", "continue")
+
+
+@dataclass(frozen=True)
+class EpisodeConfig:
+    fit: FitConfig = field(default_factory=paper_preset)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    strategy: str = "gopre"
+    strategy_options: dict = field(default_factory=dict)
+    epochs_per_view: int = 100          # E: one view every E passes over the taken views
+    views_per_round: int = 1            # greedy batch size b
+    pool_keep_fraction: float = 1.0     # candidate-pool reduction (keep a seeded fraction per round)
+    post_selection: str = "reset_opacity"
+    curve_test_views: int | None = None  # test views for the per-round curve (None: all)
+    lpips: bool = True                  # try LPIPS at the final evaluation
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.post_selection not in POLICIES:
+            raise ValueError(f"post_selection must be one of {POLICIES}, got {self.post_selection!r}")
+        if self.epochs_per_view < 0:
+            raise ValueError(f"epochs_per_view must be >= 0, got {self.epochs_per_view}")
+        if self.views_per_round < 1:
+            raise ValueError(f"views_per_round must be >= 1, got {self.views_per_round}")
+        if not 0 < self.pool_keep_fraction <= 1:
+            raise ValueError(f"pool_keep_fraction must be in (0, 1], got {self.pool_keep_fraction}")
+
+    def with_changes(self, **changes) -> "EpisodeConfig":
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def paper_episode(**changes) -> EpisodeConfig:
+    """The paper's scale: 30k iterations at full resolution, a view every 100 epochs."""
+    return replace(EpisodeConfig(fit=paper_preset(), epochs_per_view=100), **changes)
+
+
+def cpu_episode(**changes) -> EpisodeConfig:
+    """2 CPU cores: 64 px, 2000 iterations in all, a view every 25 epochs, <= 10k Gaussians,
+    the per-round curve on 50 test views (the final metrics use every test view)."""
+    base = cpu_preset().scaled_to(2000)
+    fit = replace(base, image_width=64, densify=replace(base.densify, max_gaussians=10_000))
+    return replace(EpisodeConfig(fit=fit, epochs_per_view=25, curve_test_views=50), **changes)
+
+
+def tiny_episode(**changes) -> EpisodeConfig:
+    """Tests and smoke runs: 32 px, a few hundred iterations, a 4-view budget."""
+    fit = replace(tiny_preset().scaled_to(240), image_width=32, init_points=600)
+    protocol = ProtocolConfig(initial_views=2, budget=4, probes=4)
+    return replace(EpisodeConfig(fit=fit, protocol=protocol, epochs_per_view=20, curve_test_views=8,
+                                 lpips=False), **changes)
+
+
+EPISODE_PRESETS = {"paper": paper_episode, "cpu": cpu_episode, "tiny": tiny_episode}
+
+
+def episode_preset(name: str, **changes) -> EpisodeConfig:
+    if name not in EPISODE_PRESETS:
+        raise ValueError(f"unknown episode preset {name!r}; choose one of {sorted(EPISODE_PRESETS)}")
+    return EPISODE_PRESETS[name](**changes)

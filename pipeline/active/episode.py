@@ -1,0 +1,240 @@
+"""One active-reconstruction episode: (scene, strategy, protocol, seed) -> records.
+
+initial views -> train -> select from the remaining pool -> add -> post-selection policy -> ...
+until the budget -> final training -> evaluation. ``run_episode`` is a pure function of its inputs:
+it returns records and calls an optional per-round callback, it never logs or tracks. With a
+checkpoint folder it saves its state after every round and resumes from the last finished one,
+ending with the same result as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from pipeline.acquisition import SelectionContext, make_strategy, reduce_pool, sample_probes
+from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
+from pipeline.active.config import EpisodeConfig
+from pipeline.acquisition.base import seeded_subset
+from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.scene import Scene
+from pipeline.eval.metrics import LpipsMetric, evaluate_views
+from pipeline.fit.init import from_point_cloud, random_in_box
+from pipeline.fit.trainer import Trainer
+from pipeline.memory import peak_rss_mb
+from pipeline.splat import Gaussians
+
+
+@dataclass
+class RoundRecord:
+    """The state after training on ``num_views`` views, and the selection made from it."""
+
+    round: int
+    num_views: int                 # views trained on when evaluated (the curve's x)
+    iteration: int                 # trainer step at evaluation
+    test_psnr: float               # on the curve's test views
+    test_ssim: float
+    num_gaussians: int
+    train_seconds: float           # training since the previous record
+    selected: list[int] = field(default_factory=list)  # pool ids picked after evaluation
+    probes: list[int] = field(default_factory=list)    # probe ids drawn for this round
+    scores: dict[int, float] = field(default_factory=dict)  # every candidate's score
+    candidates: int = 0
+    per_candidate_ms: float = 0.0
+    selection_seconds: float = 0.0
+    fisher_seconds: float = 0.0
+    peak_rss_mb: float = 0.0
+
+
+@dataclass
+class EpisodeResult:
+    scene: str
+    strategy: str
+    seed: int
+    protocol: str
+    initial: list[int]             # ids in the pool split
+    selected: list[int]            # ids in pick order
+    probes: list[list[int]]        # the probe ids drawn at each round
+    test_split: str                # the scene split the test ids index
+    test_ids: list[int]            # ids in the test split (final metrics)
+    curve_ids: list[int]           # ids of the per-round curve's test views
+    rounds: list[RoundRecord]
+    final: dict                    # psnr, ssim, lpips (None when unavailable), lpips_status, per view
+    wall_seconds: float
+    gaussians: Gaussians | None = None  # the final model (not part of ``to_dict``)
+
+    def to_dict(self) -> dict:
+        out = {k: v for k, v in asdict(self).items() if k != "gaussians"}
+        out["rounds"] = [asdict(r) for r in self.rounds]
+        return out
+
+
+def initial_gaussians(scene: Scene, cfg: EpisodeConfig) -> Gaussians:
+    """SfM points when the scene has them (a seeded subset of at most ``init_points``), else a
+    random cloud in the scene box."""
+    fit = cfg.fit
+    if scene.points is not None and len(scene.points):
+        gen = torch.Generator().manual_seed(cfg.seed)
+        keep = seeded_subset(list(range(len(scene.points))), min(fit.init_points, len(scene.points)), gen)
+        return from_point_cloud(scene.points[keep].float(), scene.point_colors[keep].float(),
+                                fit.sh_degree, fit.init_opacity)
+    lo, hi = scene.bounds()
+    return random_in_box(fit.init_points, lo.float(), hi.float(), fit.sh_degree, cfg.seed, fit.init_opacity)
+
+
+def uniform_subset(ids: list[int], count: int | None) -> list[int]:
+    if count is None or count >= len(ids):
+        return list(ids)
+    return [ids[i] for i in np.linspace(0, len(ids) - 1, count).round().astype(int)]
+
+
+class Episode:
+    """The mutable state of one episode between rounds (what a checkpoint holds)."""
+
+    def __init__(self, scene: Scene, cfg: EpisodeConfig):
+        self.scene, self.cfg = scene, cfg
+        self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
+        self.pool = scene.split(self.views.pool_split)
+        self.test = scene.split(self.views.test_split)
+        if cfg.fit.image_width is not None and self.pool.cameras.width != cfg.fit.image_width:
+            raise ValueError(f"scene {scene.root} was read at width {self.pool.cameras.width} but "
+                             f"fit.image_width is {cfg.fit.image_width}")
+        self.strategy = make_strategy(cfg.strategy, **cfg.strategy_options)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.curve_ids = uniform_subset(self.views.test_ids, cfg.curve_test_views)
+        self.init = initial_gaussians(scene, cfg)
+        self.taken = list(self.views.initial_ids)
+        self.records: list[RoundRecord] = []
+        self.trainer = self._new_trainer()
+        self.done = False
+        self.final: dict = {}
+
+    def _new_trainer(self) -> Trainer:
+        fit = self.cfg.fit
+        if self.cfg.post_selection == "reset_opacity":
+            # the paper resets opacities after every selection instead of on 3DGS's fixed schedule;
+            # both would put resets right before an evaluation of the PSNR-vs-views curve
+            fit = fit.with_changes(densify=replace(fit.densify, periodic_opacity_reset=False))
+        return Trainer(self.init, self.pool.cameras[self.taken], self.pool.images.stack(self.taken),
+                       fit, self.scene.background)
+
+    # -- checkpoint ---------------------------------------------------------------------------
+    def state(self, key: str) -> dict:
+        return {"fingerprint": key, "taken": self.taken, "records": [asdict(r) for r in self.records],
+                "trainer": self.trainer.state_dict(), "generator": self.generator.get_state(),
+                "torch_rng": torch.get_rng_state(), "done": self.done, "final": self.final}
+
+    def restore(self, state: dict) -> None:
+        self.taken = list(state["taken"])
+        self.records = [RoundRecord(**r) for r in state["records"]]
+        self.trainer.set_views(self.pool.cameras[self.taken], self.pool.images.stack(self.taken))
+        self.trainer.load_state_dict(state["trainer"])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self.done, self.final = state["done"], state["final"]
+
+    # -- steps --------------------------------------------------------------------------------
+    def train(self, iterations: int, progress: bool) -> float:
+        start = time.perf_counter()
+        self.trainer.train(max(iterations, 0), progress=progress,
+                           desc=f"{self.cfg.strategy} {len(self.taken)} views")
+        return time.perf_counter() - start
+
+    def evaluate_curve(self) -> tuple[float, float]:
+        m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.curve_ids],
+                           self.test.images.stack(self.curve_ids), self.scene.background).mean()
+        return m["psnr"], m["ssim"]
+
+    def record(self, train_seconds: float) -> RoundRecord:
+        psnr, ssim = self.evaluate_curve()
+        return RoundRecord(len(self.records), len(self.taken), self.trainer.step, psnr, ssim,
+                           len(self.trainer.gaussians), round(train_seconds, 3))
+
+    def draw_probes(self, round_index: int) -> list[int]:
+        """K probe ids for this round, redrawn every round independently of the selection history
+        (paper Sec. 5: a generator of its own, seeded by (seed, round))."""
+        gen = torch.Generator().manual_seed(self.cfg.seed * 100_003 + round_index)
+        return sample_probes(self.views.probe_ids, self.views.probes, gen)
+
+    def select(self, rec: RoundRecord) -> None:
+        rec.probes = self.draw_probes(rec.round)
+        taken = set(self.taken)
+        remaining = [i for i in self.views.pool_ids if i not in taken]
+        if self.cfg.pool_keep_fraction < 1:
+            remaining = reduce_pool(remaining, self.cfg.pool_keep_fraction, self.generator)
+        count = min(self.cfg.views_per_round, self.views.budget - len(self.taken), len(remaining))
+        ctx = SelectionContext(self.trainer.gaussians, self.pool.cameras[remaining], remaining,
+                               self.pool.cameras[self.taken], self.scene.background, self.generator,
+                               self.pool.cameras[rec.probes], self.pool.images.stack(self.taken),
+                               self.trainer.settings)
+        sel = self.strategy.select(ctx, count)
+        rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)
+        rec.per_candidate_ms = round(sel.seconds_per_candidate * 1e3, 3)
+        rec.selection_seconds = round(sel.round_seconds, 3)
+        rec.fisher_seconds = round(sel.fisher_seconds, 3)
+        rec.peak_rss_mb = round(max(sel.peak_rss_mb, peak_rss_mb()), 1)
+        self.taken += sel.chosen
+
+    def after_selection(self) -> None:
+        policy = self.cfg.post_selection
+        if policy == "reload":
+            self.trainer = self._new_trainer()
+            return
+        self.trainer.set_views(self.pool.cameras[self.taken], self.pool.images.stack(self.taken))
+        if policy == "reset_opacity":
+            self.trainer.reset_opacity()
+
+    def finish(self, progress: bool) -> None:
+        seconds = self.train(self.cfg.fit.iterations - self.trainer.step, progress)
+        rec = self.record(seconds)
+        rec.peak_rss_mb = round(peak_rss_mb(), 1)
+        self.records.append(rec)
+        lpips = LpipsMetric() if self.cfg.lpips else None
+        m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.views.test_ids],
+                           self.test.images.stack(self.views.test_ids), self.scene.background, lpips)
+        self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "disabled",
+                      "test_views": len(self.views.test_ids), "per_view_psnr": m.psnr,
+                      "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.gaussians),
+                      "iterations": self.trainer.step}
+        self.done = True
+
+
+def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | None = None,
+                on_round: Callable[[RoundRecord], None] | None = None,
+                progress: bool = False) -> EpisodeResult:
+    """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
+    checkpointed), including the final one; it may raise to stop the episode."""
+    start = time.perf_counter()
+    ep = Episode(scene, cfg)
+    folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
+    key = fingerprint({"scene": str(scene.root), "config": cfg.to_dict()})
+    state = load_checkpoint(folder, key)
+    if state is not None:
+        ep.restore(state)
+    while not ep.done and len(ep.taken) < ep.views.budget:
+        seconds = ep.train(cfg.epochs_per_view * len(ep.taken), progress)
+        rec = ep.record(seconds)
+        ep.select(rec)
+        ep.after_selection()
+        ep.records.append(rec)
+        _checkpoint(ep, folder, key, on_round, rec)
+    if not ep.done:
+        ep.finish(progress)
+        _checkpoint(ep, folder, key, on_round, ep.records[-1])
+    return EpisodeResult(str(scene.root), cfg.strategy, cfg.seed, cfg.protocol.kind,
+                         list(ep.views.initial_ids), ep.taken[len(ep.views.initial_ids):],
+                         [r.probes for r in ep.records[:-1]], ep.views.test_split,
+                         list(ep.views.test_ids), ep.curve_ids, ep.records, ep.final,
+                         round(time.perf_counter() - start, 2), ep.trainer.gaussians)
+
+
+def _checkpoint(ep: Episode, folder: Path | None, key: str, on_round, rec: RoundRecord) -> None:
+    if folder is not None:
+        save_checkpoint(folder, ep.state(key))
+    if on_round is not None:
+        on_round(rec)

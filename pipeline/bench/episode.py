@@ -1,0 +1,53 @@
+"""Episode benchmark: one full active-reconstruction episode, timed.
+
+    python -m pipeline.bench episode --scene PATH --strategy NAME [--preset cpu] [--seed 0]
+
+Prints one JSON line with ``wall_s, final_psnr, final_ssim, final_lpips, selected`` and the
+per-round curve and selection times. Target: the Blender 10-view episode (2 initial views, +1 per
+round) at the CPU preset on lego in <= 15 minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from pipeline.active import episode_preset, run_episode
+from pipeline.bench.measure import machine_load
+from pipeline.data.load import load_scene
+from pipeline.data.protocols import ProtocolConfig
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.bench episode", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", type=Path, required=True)
+    parser.add_argument("--strategy", required=True)
+    parser.add_argument("--preset", default="cpu", choices=["cpu", "paper", "tiny"])
+    parser.add_argument("--protocol", default="global", choices=["global", "goal", "sparse"])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--checkpoint", type=Path, default=None, help="resume folder")
+    parser.add_argument("--progress", action="store_true")
+    args = parser.parse_args(argv)
+    start = time.perf_counter()
+    cfg = episode_preset(args.preset, strategy=args.strategy, seed=args.seed)
+    cfg = cfg.with_changes(protocol=ProtocolConfig(**{**cfg.protocol.__dict__, "kind": args.protocol}))
+    scene = load_scene(args.scene, width=cfg.fit.image_width)
+    result = run_episode(scene, cfg, args.checkpoint, progress=args.progress)
+    row = {"scene": str(args.scene), "strategy": args.strategy, "preset": args.preset,
+           "protocol": args.protocol, "seed": args.seed, "wall_s": round(time.perf_counter() - start, 1),
+           "final_psnr": round(result.final["psnr"], 3), "final_ssim": round(result.final["ssim"], 4),
+           "final_lpips": result.final["lpips"], "lpips_status": result.final["lpips_status"],
+           "selected": result.selected, "initial": result.initial,
+           "curve": [[r.num_views, round(r.test_psnr, 3)] for r in result.rounds],
+           "selection_s": [r.selection_seconds for r in result.rounds[:-1]],
+           "train_s": round(sum(r.train_seconds for r in result.rounds), 1),
+           "num_gaussians": result.final["num_gaussians"], "load_avg_1m": round(machine_load(), 2)}
+    print(json.dumps(row), flush=True)
+    return row
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""Image metrics as the 3DGS evaluation computes them, per view, then averaged over views.
+
+- PSNR: 10 log10(1 / MSE) of the render clamped to [0, 1] against the ground truth, per view.
+- SSIM: scikit-image ``structural_similarity`` with the settings of Wang et al. that 3DGS uses:
+  an 11x11 Gaussian window with sigma 1.5 (``gaussian_weights=True, sigma=1.5``), K1 = 0.01,
+  K2 = 0.03, population covariances (``use_sample_covariance=False``), data range 1, channels
+  averaged. One difference remains: scikit-image averages over the valid interior (it crops
+  (win - 1) / 2 = 5 px at each border), 3DGS pads with zeros and averages over all pixels.
+- LPIPS: the ``lpips`` package with the VGG backbone (as 3DGS and FisherRF report; gsplat's
+  default is AlexNet). Its backbone weights come from torchvision's pretrained VGG16; when the
+  package, torchvision or the weights are missing, LPIPS is *unavailable*: recorded as ``None``
+  with the reason, never as a number.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from skimage.metrics import structural_similarity
+from torch import Tensor
+
+from pipeline.cameras import Cameras
+from pipeline.splat import Gaussians, RenderSettings, render
+
+SSIM_SETTINGS = {"gaussian_weights": True, "sigma": 1.5, "win_size": 11, "K1": 0.01, "K2": 0.03,
+                 "use_sample_covariance": False, "data_range": 1.0, "channel_axis": -1}
+
+
+def _check_pair(pred: Tensor, gt: Tensor) -> None:
+    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[-1] != 3:
+        raise ValueError(f"images must both be [H, W, 3], got {tuple(pred.shape)} and {tuple(gt.shape)}")
+
+
+def psnr_value(pred: Tensor, gt: Tensor) -> float:
+    """PSNR in dB of one view: pred, gt [H, W, 3] in [0, 1] (pred is clamped)."""
+    _check_pair(pred, gt)
+    mse = float((pred.clamp(0, 1).double() - gt.double()).square().mean())
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+def ssim_value(pred: Tensor, gt: Tensor) -> float:
+    """SSIM of one view (settings in ``SSIM_SETTINGS``): pred, gt [H, W, 3] in [0, 1]."""
+    _check_pair(pred, gt)
+    a = pred.detach().clamp(0, 1).double().cpu().numpy()
+    b = gt.detach().double().cpu().numpy()
+    return float(structural_similarity(b, a, **SSIM_SETTINGS))
+
+
+class LpipsMetric:
+    """LPIPS (VGG) when it can run here; ``available`` and ``reason`` say whether and why not."""
+
+    def __init__(self, net: str = "vgg"):
+        self.net, self.model, self.reason = net, None, ""
+        try:
+            import lpips  # optional extra: pip install 'gopre[lpips]'
+            self.model = lpips.LPIPS(net=net, verbose=False).eval()
+        except Exception as err:  # ImportError, or the pretrained weights cannot be fetched
+            self.reason = f"LPIPS ({net}) unavailable: {type(err).__name__}: {str(err).splitlines()[0][:160]}"
+
+    @property
+    def available(self) -> bool:
+        return self.model is not None
+
+    @torch.no_grad()
+    def __call__(self, pred: Tensor, gt: Tensor) -> float | None:
+        if self.model is None:
+            return None
+        _check_pair(pred, gt)
+        to_nchw = lambda x: x.clamp(0, 1).permute(2, 0, 1)[None].float().cpu()  # noqa: E731
+        return float(self.model(to_nchw(pred), to_nchw(gt), normalize=True))
+
+
+@dataclass
+class ViewMetrics:
+    """Per-view metrics of a set of test views; ``lpips`` is None when unavailable."""
+
+    psnr: list[float]
+    ssim: list[float]
+    lpips: list[float] | None = None
+    lpips_status: str = "not computed"
+    extra: dict = field(default_factory=dict)
+
+    def mean(self) -> dict:
+        out = {"psnr": float(np.mean(self.psnr)), "ssim": float(np.mean(self.ssim)),
+               "lpips": float(np.mean(self.lpips)) if self.lpips is not None else None}
+        return out
+
+
+@torch.no_grad()
+def evaluate_views(gaussians: Gaussians, cameras: Cameras, images: Tensor, background: Tensor,
+                   lpips: LpipsMetric | None = None, settings: RenderSettings = RenderSettings(),
+                   ssim: bool = True) -> ViewMetrics:
+    """Render each camera [C] and compare with ``images`` [C, H, W, 3]."""
+    if images.shape[0] != len(cameras):
+        raise ValueError(f"{images.shape[0]} images for {len(cameras)} cameras")
+    psnrs, ssims, lp = [], [], []
+    for i in range(len(cameras)):
+        pred = render(gaussians, cameras[i], background, settings=settings).rgb[0].clamp(0, 1)
+        psnrs.append(psnr_value(pred, images[i]))
+        ssims.append(ssim_value(pred, images[i]) if ssim else float("nan"))
+        if lpips is not None and lpips.available:
+            lp.append(lpips(pred, images[i]))
+    if lpips is None:
+        return ViewMetrics(psnrs, ssims)
+    status = "vgg" if lpips.available else lpips.reason
+    return ViewMetrics(psnrs, ssims, lp if lpips.available else None, status)

@@ -1,0 +1,1 @@
+"""The experiment pipeline: the only package importing Hydra, OmegaConf, Ray and MLflow."""

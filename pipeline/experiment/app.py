@@ -1,0 +1,56 @@
+"""``pipeline-run``: the Hydra app over ``run_sweep``.
+
+    pipeline-run experiment=demo
+    pipeline-run experiment=table1_global data_root=/data splat=cpu executor.address=auto
+
+The exit status is the number of failed jobs (capped at 100); 0 when every job finished.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.experiment.build import ConfigError
+from pipeline.experiment.sweep import run_sweep
+
+CONF_DIR = Path(os.environ.get("GOPRE_CONF", Path(__file__).resolve().parents[2] / "conf"))
+
+
+def data_dir(sub: str, *, _root_: DictConfig) -> str:
+    """``${data_dir:blender}`` -> <data_root>/blender; data_root from the command line or GOPRE_DATA."""
+    root = _root_.get("data_root")
+    if root in (None, "", "None"):
+        raise ConfigError(f"data_root is not set (needed for {sub!r}): pass data_root=/path/to/datasets "
+                          "or set GOPRE_DATA")
+    return str(Path(str(root)) / sub)
+
+
+def register_resolvers() -> None:
+    if not OmegaConf.has_resolver("data_dir"):
+        OmegaConf.register_new_resolver("data_dir", data_dir)
+
+
+register_resolvers()
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+def main(cfg: DictConfig) -> None:
+    try:
+        summary = run_sweep(cfg)
+    except ConfigError as err:
+        print(f"pipeline-run: config error: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(f"[{summary.name}] finished {summary.finished}, failed {summary.failed}, skipped {summary.skipped} "
+          f"of {summary.jobs} jobs in {summary.seconds:.0f} s; records: {summary.output_dir}/records.parquet"
+          + (f"; MLflow: {summary.tracking_uri}" if summary.tracking_uri else ""), flush=True)
+    if summary.failed:
+        sys.exit(min(summary.failed, 100))
+
+
+if __name__ == "__main__":
+    main()

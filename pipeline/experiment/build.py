@@ -1,0 +1,169 @@
+"""From a composed sweep config to a list of jobs, each a plain JSON-able dict with a config hash.
+
+A sweep expands datasets x scenes x methods x seeds x sweep axes. A job dict has:
+``kind, dataset, format, scene, scene_path, generate, method, strategy, options, protocol, splat,
+seed, renders, uncertainty, axes, setting`` and an ``execution`` part (threads, device, retries,
+job folder) that is not part of the hash: the hash names *what* is computed, not where or how.
+Every job is validated here (episode config, strategy options) so bad values fail at start-up.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import itertools
+import json
+from dataclasses import fields, replace
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.acquisition import make_strategy
+from pipeline.active.config import EpisodeConfig, episode_preset
+from pipeline.active.uncertainty import UncertaintyConfig
+from pipeline.data.protocols import ProtocolConfig
+
+JOB_KINDS = ("episode", "uncertainty")
+METHOD_KEYS = {"strategy", "options", "protocol"}
+SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
+              "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips"}
+NOT_HASHED = ("execution", "scene_path", "sweep")
+
+
+class ConfigError(ValueError):
+    """A sweep config that cannot run; the message names the key."""
+
+
+def config_hash(job: dict) -> str:
+    """Stable hash of what a job computes (no paths, no execution settings)."""
+    core = {k: v for k, v in job.items() if k not in NOT_HASHED}
+    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _container(cfg: DictConfig, key: str):
+    try:
+        return OmegaConf.to_container(cfg[key], resolve=True)
+    except Exception as err:  # interpolation and resolver errors name the key themselves
+        raise ConfigError(f"{key}: {err}") from None
+
+
+def _set_dotted(job: dict, dotted: str, value) -> None:
+    node, parts = job, dotted.split(".")
+    for part in parts[:-1]:
+        if not isinstance(node.get(part), dict):
+            raise ConfigError(f"sweep: {dotted!r} is not a job key (no {part!r})")
+        node = node[part]
+    if parts[-1] not in node:
+        raise ConfigError(f"sweep: {dotted!r} is not a job key; job keys: protocol.*, splat.*, options.*, "
+                          "renders, uncertainty.*")
+    node[parts[-1]] = value
+
+
+def _axes(cfg: DictConfig) -> list[dict]:
+    sweep = _container(cfg, "sweep") or {}
+    for key, values in sweep.items():
+        if not isinstance(values, list) or not values:
+            raise ConfigError(f"sweep.{key}: expected a non-empty list of values, got {values!r}")
+    keys = sorted(sweep)
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(sweep[k] for k in keys))]
+
+
+def expand_jobs(cfg: DictConfig) -> list[dict]:
+    """Every job of the sweep, validated, in a deterministic order."""
+    datasets, methods = _container(cfg, "dataset"), _container(cfg, "method")
+    protocol, splat, job_cfg = _container(cfg, "protocol"), _container(cfg, "splat"), _container(cfg, "job")
+    if not datasets:
+        raise ConfigError("dataset: no dataset selected")
+    if not methods:
+        raise ConfigError("method: no method selected")
+    if job_cfg["kind"] not in JOB_KINDS:
+        raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
+    jobs = []
+    output_dir = Path(str(cfg.output_dir))
+    for (dname, dset), (mname, method), seed, axes in itertools.product(
+            datasets.items(), methods.items(), list(cfg.seeds), _axes(cfg)):
+        unknown = set(method) - METHOD_KEYS
+        if unknown:
+            raise ConfigError(f"method.{mname}: unknown keys {sorted(unknown)}; allowed {sorted(METHOD_KEYS)}")
+        for scene in dset["scenes"]:
+            job = {"sweep": str(cfg.name), "kind": job_cfg["kind"], "dataset": dname,
+                   "format": dset["format"], "scene": scene,
+                   "scene_path": str(Path(str(dset["root"])) / scene), "generate": dset.get("generate"),
+                   "method": mname, "strategy": method["strategy"],
+                   "options": copy.deepcopy(method.get("options") or {}),
+                   "protocol": {**protocol, **(method.get("protocol") or {})}, "splat": dict(splat),
+                   "seed": int(seed), "renders": int(job_cfg["renders"]),
+                   "uncertainty": _container(cfg, "uncertainty") if job_cfg["kind"] == "uncertainty" else None}
+            for key, value in axes.items():
+                _set_dotted(job, key, value)
+            job["axes"] = axes
+            job["setting"] = ", ".join(f"{k}={v}" for k, v in axes.items())
+            job["config_hash"] = config_hash(job)
+            job["execution"] = {"threads": int(job_cfg["threads"]), "device": str(job_cfg["device"]),
+                                "retries": int(job_cfg["retries"]),
+                                "job_dir": str(output_dir / "jobs" / job["config_hash"])}
+            validate_job(job)
+            jobs.append(job)
+    return jobs
+
+
+def episode_config(job: dict) -> EpisodeConfig:
+    """The core's plain dataclass for a job (the core never sees a DictConfig)."""
+    splat = dict(job["splat"])
+    unknown = set(splat) - SPLAT_KEYS
+    if unknown:
+        raise ConfigError(f"splat: unknown keys {sorted(unknown)}; allowed {sorted(SPLAT_KEYS)}")
+    try:
+        base = episode_preset(splat["preset"])
+        fit = base.fit
+        if splat.get("iterations"):
+            fit = fit.scaled_to(int(splat["iterations"]))
+        if splat.get("image_width"):
+            fit = fit.with_changes(image_width=int(splat["image_width"]))
+        if splat.get("max_gaussians"):
+            fit = fit.with_changes(densify=replace(fit.densify, max_gaussians=int(splat["max_gaussians"])))
+        fit = fit.with_changes(seed=job["seed"])
+        protocol = _protocol(job["protocol"])
+        changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
+                                          "views_per_round", "pool_keep_fraction", "lpips")
+                   if splat.get(k) is not None}
+        if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
+            changes["curve_test_views"] = None
+        return replace(base, fit=fit, protocol=protocol, strategy=job["strategy"],
+                       strategy_options=dict(job["options"]), seed=job["seed"], **changes)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as err:
+        raise ConfigError(f"splat/protocol of job {job['method']} on {job['scene']}: {err}") from None
+
+
+def _protocol(data: dict) -> ProtocolConfig:
+    allowed = {f.name for f in fields(ProtocolConfig)}
+    unknown = set(data) - allowed
+    if unknown:
+        raise ConfigError(f"protocol: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+    try:
+        return ProtocolConfig(**data)
+    except ValueError as err:
+        raise ConfigError(f"protocol: {err}") from None
+
+
+def uncertainty_config(job: dict) -> UncertaintyConfig:
+    data = dict(job["uncertainty"] or {})
+    allowed = {f.name for f in fields(UncertaintyConfig)}
+    unknown = set(data) - allowed
+    if unknown:
+        raise ConfigError(f"uncertainty: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+    if "methods" in data:
+        data["methods"] = tuple(data["methods"])
+    return UncertaintyConfig(**data, seed=job["seed"])
+
+
+def validate_job(job: dict) -> None:
+    episode_config(job)
+    try:
+        make_strategy(job["strategy"], **job["options"])
+    except ValueError as err:
+        raise ConfigError(f"method.{job['method']}: {err}") from None
+    if job["kind"] == "uncertainty":
+        uncertainty_config(job)

@@ -1,0 +1,119 @@
+"""What a worker runs for one job: the episode (or the uncertainty experiment), with retries.
+
+Workers never write to MLflow: they return an outcome dict (records and artifact bytes) that the
+driver tracks. Their job folder holds the episode checkpoint (a killed job resumes from its last
+finished round) and a log with one line per round.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from pipeline.active import run_episode
+from pipeline.active.uncertainty import run_uncertainty_experiment
+from pipeline.data.load import load_scene
+from pipeline.data.scene import Scene
+from pipeline.experiment.build import episode_config, uncertainty_config
+from pipeline.splat import render
+
+
+def set_threads(threads: int) -> None:
+    """Torch (and BLAS/OpenMP) threads = the CPUs the job reserved: two jobs on two cores must
+    not each start two threads."""
+    torch.set_num_threads(threads)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(threads)
+
+
+def png_bytes(image: torch.Tensor) -> bytes:
+    """[H, W, 3] in [0, 1] -> PNG bytes."""
+    array = (image.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def colormap(values: torch.Tensor) -> torch.Tensor:
+    """[H, W] non-negative -> [H, W, 3] (black -> red -> yellow -> white), scaled to the max."""
+    v = (values / values.max().clamp_min(1e-12)).clamp(0, 1)
+    return torch.stack([(3 * v).clamp(0, 1), (3 * v - 1).clamp(0, 1), (3 * v - 2).clamp(0, 1)], -1)
+
+
+def _log(folder: Path, line: str) -> None:
+    with open(folder / "log.txt", "a") as f:
+        f.write(f"{time.strftime('%H:%M:%S')} {line}\n")
+
+
+def run_episode_job(job: dict, scene: Scene, folder: Path) -> dict:
+    cfg = episode_config(job)
+
+    def on_round(rec):
+        _log(folder, f"round {rec.round}: {rec.num_views} views, psnr {rec.test_psnr:.2f}, "
+                     f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
+    result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round)
+    views = scene.split(result.test_split)
+    shown = result.test_ids[:job["renders"]]
+    with torch.no_grad():
+        preds = render(result.gaussians, views.cameras[shown], scene.background).rgb
+    truth = views.images.stack(shown)
+    artifacts = {"selected_views.json": json.dumps({"initial": result.initial, "selected": result.selected,
+                                                    "probes": result.probes}).encode()}
+    for i, view in enumerate(shown):
+        artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
+    return {"result": result.to_dict(), "artifacts": artifacts}
+
+
+def run_uncertainty_job(job: dict, scene: Scene, folder: Path) -> dict:
+    out = run_uncertainty_experiment(scene, episode_config(job), uncertainty_config(job))
+    artifacts = {}
+    for i, view in enumerate(out["map_ids"]):
+        error = (out["renders"][i] - out["ground_truth"][i]).square().sum(-1)
+        variance = out["variance_maps"][i].sum(-1)
+        row = torch.cat([out["ground_truth"][i], out["renders"][i], colormap(error), colormap(variance)], 1)
+        artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)
+    result = {k: v for k, v in out.items() if k not in ("variance_maps", "renders", "ground_truth")}
+    artifacts["sparsification.json"] = json.dumps(result).encode()
+    _log(folder, f"uncertainty: AUSE {result['ause']}")
+    return {"result": result, "artifacts": artifacts}
+
+
+def run_job(job: dict, scene: Scene | None = None) -> dict:
+    """Run one job once; ``scene`` comes from the object store, else it is read here."""
+    ex = job["execution"]
+    set_threads(ex["threads"])
+    folder = Path(ex["job_dir"])
+    folder.mkdir(parents=True, exist_ok=True)
+    if scene is None:
+        scene = load_scene(job["scene_path"], width=episode_config(job).fit.image_width)
+    start = time.perf_counter()
+    runner = run_uncertainty_job if job["kind"] == "uncertainty" else run_episode_job
+    outcome = runner(job, scene, folder)
+    outcome["seconds"] = round(time.perf_counter() - start, 2)
+    return outcome
+
+
+def run_with_retries(job: dict, scene: Scene | None = None) -> dict:
+    """``run_job`` with ``execution.retries`` re-runs after an exception; the outcome says
+    FINISHED, or FAILED with the last traceback. Never raises for an application error."""
+    attempts = 1 + max(0, int(job["execution"]["retries"]))
+    errors = []
+    for attempt in range(1, attempts + 1):
+        try:
+            outcome = run_job(job, scene)
+            return {**outcome, "status": "FINISHED", "attempts": attempt, "errors": errors}
+        except Exception:
+            errors.append(traceback.format_exc())
+            folder = Path(job["execution"]["job_dir"])
+            folder.mkdir(parents=True, exist_ok=True)
+            _log(folder, f"attempt {attempt}/{attempts} failed:\n{errors[-1]}")
+    return {"status": "FAILED", "attempts": attempts, "errors": errors, "traceback": errors[-1],
+            "result": None, "artifacts": {"traceback.txt": errors[-1].encode()}}

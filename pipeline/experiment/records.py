@@ -1,0 +1,94 @@
+"""The sweep's records file (``<output_dir>/records.parquet``): one tidy table the reports read.
+
+Rows, by ``kind``:
+- ``round``: one per episode round (``num_views`` = views trained on; the PSNR-vs-views curve).
+- ``final``: one per job: final metrics on every test view, status, selection cost, run id.
+- ``sparsification``: one per (uncertainty method, fraction) of an uncertainty job.
+- ``ause``: one per uncertainty method of an uncertainty job.
+Identifying columns on every row: sweep, config_hash, run_id, status, dataset, scene, method,
+strategy, protocol, seed, setting (the sweep-axis values as ``key=value, ...``), axes (JSON).
+The file is rewritten atomically after every job, so a killed sweep loses no finished job.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+RECORDS = "records.parquet"
+
+
+def identity(job: dict, outcome: dict, run_id: str | None) -> dict:
+    return {"sweep": job["sweep"], "config_hash": job["config_hash"], "run_id": run_id,
+            "status": outcome["status"], "job_kind": job["kind"], "dataset": job["dataset"],
+            "scene": job["scene"], "method": job["method"], "strategy": job["strategy"],
+            "protocol": job["protocol"]["kind"], "seed": job["seed"], "setting": job["setting"],
+            "axes": json.dumps(job["axes"], sort_keys=True)}
+
+
+def episode_rows(base: dict, result: dict, seconds: float) -> list[dict]:
+    rounds = result["rounds"]
+    rows = [{**base, "kind": "round", "num_views": r["num_views"], "iteration": r["iteration"],
+             "psnr": r["test_psnr"], "ssim": r["test_ssim"], "num_gaussians": r["num_gaussians"],
+             "per_candidate_ms": r["per_candidate_ms"] or None,
+             "selection_seconds": r["selection_seconds"] or None, "peak_rss_mb": r["peak_rss_mb"],
+             "selected": json.dumps(r["selected"])} for r in rounds]
+    picks = [r for r in rounds if r["selected"]]
+    final = result["final"]
+    rows.append({**base, "kind": "final", "num_views": rounds[-1]["num_views"] if rounds else None,
+                 "psnr": final["psnr"], "ssim": final["ssim"], "lpips": final["lpips"],
+                 "lpips_status": final["lpips_status"], "test_views": final["test_views"],
+                 "num_gaussians": final["num_gaussians"], "wall_seconds": seconds,
+                 "per_candidate_ms": float(np.mean([r["per_candidate_ms"] for r in picks])) if picks else None,
+                 "selection_seconds": float(np.mean([r["selection_seconds"] for r in picks])) if picks else None,
+                 "peak_rss_mb": max((r["peak_rss_mb"] for r in rounds), default=None),
+                 "selected": json.dumps(result["selected"]), "initial": json.dumps(result["initial"])})
+    return rows
+
+
+def uncertainty_rows(base: dict, result: dict, seconds: float) -> list[dict]:
+    rows = [{**base, "kind": "sparsification", "uncertainty_method": name, "fraction": f, "psnr": v}
+            for name, curve in result["curves"].items() for f, v in zip(result["fractions"], curve)]
+    rows += [{**base, "kind": "ause", "uncertainty_method": name, "ause": value}
+             for name, value in result["ause"].items()]
+    rows.append({**base, "kind": "final", "psnr": float(np.mean(result["psnr"])), "wall_seconds": seconds,
+                 "test_views": len(result["psnr"])})
+    return rows
+
+
+def job_rows(job: dict, outcome: dict, run_id: str | None) -> list[dict]:
+    base = identity(job, outcome, run_id)
+    if outcome["status"] != "FINISHED":
+        return [{**base, "kind": "final", "error": outcome.get("traceback", "")[-2000:],
+                 "attempts": outcome.get("attempts")}]
+    rows_for = uncertainty_rows if job["kind"] == "uncertainty" else episode_rows
+    rows = rows_for(base, outcome["result"], outcome.get("seconds"))
+    for row in rows:
+        row["attempts"] = outcome.get("attempts")
+    return rows
+
+
+class RecordsFile:
+    def __init__(self, folder: str | Path):
+        self.path = Path(folder) / RECORDS
+        self.frame = pd.read_parquet(self.path) if self.path.exists() else pd.DataFrame()
+
+    def finished_hashes(self) -> set[str]:
+        if self.frame.empty:
+            return set()
+        done = self.frame[(self.frame["kind"] == "final") & (self.frame["status"] == "FINISHED")]
+        return set(done["config_hash"])
+
+    def add(self, rows: list[dict]) -> None:
+        """Replace the rows of these jobs (by config hash) and rewrite the file atomically."""
+        hashes = {r["config_hash"] for r in rows}
+        kept = self.frame[~self.frame["config_hash"].isin(hashes)] if not self.frame.empty else self.frame
+        self.frame = pd.concat([kept, pd.DataFrame(rows)], ignore_index=True)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        self.frame.to_parquet(tmp, index=False)
+        os.replace(tmp, self.path)

@@ -1,0 +1,123 @@
+"""The driver of a sweep: expand, skip what is done, prepare scenes, fan out, track, record.
+
+Relaunching a sweep skips every job whose config hash has a FINISHED run (in MLflow or in the
+records file) and reruns the rest; the records file is rewritten after every job, and each job
+checkpoints its episode after every round, so a killed sweep loses no finished work.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.data.load import load_scene
+from pipeline.data.scene import Scene
+from pipeline.data.synthetic import generate
+from pipeline.experiment.build import episode_config, expand_jobs
+from pipeline.experiment.executor import make_executor, scene_key
+from pipeline.experiment.records import RecordsFile, job_rows
+from pipeline.experiment.tracking import make_tracker
+
+
+@dataclass
+class SweepSummary:
+    name: str
+    output_dir: str
+    jobs: int
+    skipped: int
+    finished: int
+    failed: int
+    seconds: float
+    tracking_uri: str | None
+
+
+class Progress:
+    """Jobs done / running / failed and an ETA, one line per finished job."""
+
+    def __init__(self, name: str, total: int, slots: int):
+        self.name, self.total, self.slots = name, total, max(1, slots)
+        self.done = self.failed = 0
+        self.start = time.perf_counter()
+
+    def update(self, job: dict, outcome: dict) -> None:
+        self.done += 1
+        self.failed += outcome["status"] != "FINISHED"
+        left = self.total - self.done
+        elapsed = time.perf_counter() - self.start
+        eta = elapsed / self.done * left
+        running = min(left, self.slots)
+        print(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
+              f"ETA {eta / 60:.1f} min | {job['method']} on {job['scene']} (seed {job['seed']}"
+              f"{', ' + job['setting'] if job['setting'] else ''}): {outcome['status']} "
+              f"{_headline(outcome)}", flush=True)
+
+
+def _headline(outcome: dict) -> str:
+    result = outcome.get("result")
+    if not result:
+        return "(see traceback.txt)"
+    if "final" in result:
+        return f"PSNR {result['final']['psnr']:.2f} dB in {outcome.get('seconds', 0):.0f} s"
+    return f"AUSE {json.dumps({k: round(v, 3) for k, v in result['ause'].items()})}"
+
+
+def prepare_scenes(jobs: list[dict]) -> dict[str, Scene]:
+    """Generate the embedded scene if needed, then read each (scene, resolution) once."""
+    scenes = {}
+    for job in jobs:
+        key = scene_key(job)
+        if key in scenes:
+            continue
+        path = Path(job["scene_path"])
+        if job.get("generate") and not (path / "transforms_test.json").exists():
+            options = job["generate"]
+            print(f"generating the default scene into {path} ...", flush=True)
+            generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
+                     n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
+        scenes[key] = load_scene(path, width=episode_config(job).fit.image_width)
+    return scenes
+
+
+def run_sweep(cfg: DictConfig) -> SweepSummary:
+    start = time.perf_counter()
+    jobs = expand_jobs(cfg)
+    output_dir = Path(str(cfg.output_dir))
+    output_dir.mkdir(parents=True, exist_ok=True)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    (output_dir / "sweep_config.json").write_text(json.dumps(resolved, indent=1, default=str))
+    records = RecordsFile(output_dir)
+    tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
+    done = records.finished_hashes() | tracker.finished_hashes()
+    todo = [j for j in jobs if j["config_hash"] not in done]
+    print(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
+          f"{len(todo)} to run; output in {output_dir}", flush=True)
+    (output_dir / "jobs.json").write_text(json.dumps(jobs, indent=1))
+    executor = make_executor(resolved["executor"])
+    failed = 0
+    if todo:
+        scenes = prepare_scenes(todo)
+        tracker.start(resolved, len(todo))
+        progress = Progress(str(cfg.name), len(todo), 1)
+
+        def on_done(job: dict, outcome: dict) -> None:
+            nonlocal failed
+            failed += outcome["status"] != "FINISHED"
+            try:
+                run_id = tracker.log_job(job, outcome)
+            except Exception as err:  # tracking trouble must not lose the job's records
+                print(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: {err}", flush=True)
+                run_id = None
+            records.add(job_rows(job, outcome, run_id))
+            progress.slots = getattr(executor, "slots", 1)
+            progress.update(job, outcome)
+
+        executor.map(todo, scenes, on_done)
+    summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
+                           len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri)
+    tracker.end(asdict(summary))
+    (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
+    return summary

@@ -1,0 +1,160 @@
+"""Tracking: MLflow (one parent run per sweep launch, one child run per job) or none.
+
+Only the driver talks to MLflow. The default store is embedded: ``sqlite:///<output_dir>/mlflow.db``
+with artifacts under ``<output_dir>/mlartifacts`` (no server); ``uri=http://host:port`` logs to a
+tracking server. Child runs carry the tags method, dataset, scene, protocol, seed, config_hash and
+``mlflow.parentRunId``; params are the flattened job config; per-round metrics use step = number
+of views, so the UI draws PSNR-vs-views curves.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+
+TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting")
+
+
+def flatten(data: dict, prefix: str = "") -> dict[str, str]:
+    out = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            out.update(flatten(value, f"{name}."))
+        else:
+            out[name] = str(value)[:500]
+    return out
+
+
+def job_params(job: dict) -> dict[str, str]:
+    return flatten({k: v for k, v in job.items() if k not in ("execution", "config_hash", "sweep")})
+
+
+class NoTracker:
+    uri = None
+
+    def finished_hashes(self) -> set[str]:
+        return set()
+
+    def start(self, sweep_config: dict, jobs: int) -> None:
+        pass
+
+    def log_job(self, job: dict, outcome: dict) -> str | None:
+        return None
+
+    def end(self, summary: dict) -> None:
+        pass
+
+
+class MlflowTracker:
+    def __init__(self, uri: str | None, output_dir: Path, experiment: str):
+        from mlflow import MlflowClient
+
+        output_dir = Path(output_dir).resolve()
+        output_dir.mkdir(parents=True, exist_ok=True)
+        self.uri = uri or f"sqlite:///{output_dir / 'mlflow.db'}"
+        self.client = MlflowClient(tracking_uri=self.uri)
+        found = self.client.get_experiment_by_name(experiment)
+        if found is None:
+            location = None if uri else (output_dir / "mlartifacts").as_uri()
+            self.experiment_id = self.client.create_experiment(experiment, artifact_location=location)
+        else:
+            self.experiment_id = found.experiment_id
+        self.parent: str | None = None
+
+    def finished_hashes(self) -> set[str]:
+        hashes, token = set(), None
+        while True:
+            page = self.client.search_runs([self.experiment_id], "attributes.status = 'FINISHED'",
+                                           max_results=1000, page_token=token)
+            hashes |= {r.data.tags["config_hash"] for r in page if "config_hash" in r.data.tags}
+            token = page.token
+            if not token:
+                return hashes
+
+    def start(self, sweep_config: dict, jobs: int) -> None:
+        run = self.client.create_run(self.experiment_id, run_name=f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                                     tags={"kind": "sweep", "jobs": str(jobs)})
+        self.parent = run.info.run_id
+        self._log_params(self.parent, flatten(sweep_config))
+
+    def _log_params(self, run_id: str, params: dict[str, str]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(k[:250], v) for k, v in sorted(params.items())]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(run_id, params=items[i:i + 100])
+
+    def _log_metrics(self, run_id: str, metrics: list[tuple[str, float, int]]) -> None:
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, step) for k, v, step in metrics
+                 if v is not None and math.isfinite(float(v))]
+        for i in range(0, len(items), 1000):
+            self.client.log_batch(run_id, metrics=items[i:i + 1000])
+
+    def log_job(self, job: dict, outcome: dict) -> str:
+        tags = {k: str(job[k]) for k in TAGS}
+        tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or "",
+                     "attempts": str(outcome.get("attempts"))})
+        run = self.client.create_run(self.experiment_id, run_name=f"{job['method']} {job['scene']} s{job['seed']}",
+                                     tags=tags)
+        run_id = run.info.run_id
+        self._log_params(run_id, job_params(job))
+        if outcome["status"] == "FINISHED":
+            self._log_metrics(run_id, self._metrics(job, outcome))
+        self._log_artifacts(run_id, job, outcome)
+        self.client.set_terminated(run_id, outcome["status"])
+        return run_id
+
+    @staticmethod
+    def _metrics(job: dict, outcome: dict) -> list[tuple[str, float, int]]:
+        result = outcome["result"]
+        if job["kind"] == "uncertainty":
+            return [(f"ause_{name}", v, 0) for name, v in result["ause"].items()]
+        out = []
+        for r in result["rounds"]:
+            step = r["num_views"]
+            out += [("test_psnr", r["test_psnr"], step), ("test_ssim", r["test_ssim"], step),
+                    ("num_gaussians", r["num_gaussians"], step)]
+            if r["selected"]:
+                out += [("per_candidate_ms", r["per_candidate_ms"], step),
+                        ("selection_seconds", r["selection_seconds"], step)]
+        final = result["final"]
+        out += [("final_psnr", final["psnr"], 0), ("final_ssim", final["ssim"], 0),
+                ("wall_seconds", outcome.get("seconds"), 0)]
+        if final["lpips"] is not None:
+            out.append(("final_lpips", final["lpips"], 0))
+        return out
+
+    def _log_artifacts(self, run_id: str, job: dict, outcome: dict) -> None:
+        import json
+
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = Path(tmp)
+            (folder / "config.json").write_text(json.dumps({k: v for k, v in job.items()}, indent=1))
+            if outcome.get("result") is not None:
+                (folder / "result.json").write_text(json.dumps(outcome["result"], default=str))
+            for name, data in (outcome.get("artifacts") or {}).items():
+                path = folder / name
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(data)
+            self.client.log_artifacts(run_id, str(folder))
+
+    def end(self, summary: dict) -> None:
+        if self.parent is None:
+            return
+        self._log_metrics(self.parent, [(k, v, 0) for k, v in summary.items() if isinstance(v, (int, float))])
+        self.client.set_terminated(self.parent, "FAILED" if summary.get("failed") else "FINISHED")
+
+
+def make_tracker(cfg: dict, output_dir: Path, experiment: str):
+    kind = cfg.get("kind")
+    if kind == "none":
+        return NoTracker()
+    if kind == "mlflow":
+        return MlflowTracker(cfg.get("uri"), output_dir, experiment)
+    raise ValueError(f"tracking.kind: must be 'mlflow' or 'none', got {kind!r}")

@@ -1,0 +1,134 @@
+"""The episode end to end on a tiny generated scene: records, resume, determinism, policies."""
+
+import json
+
+import pytest
+import torch
+
+from pipeline.active import run_episode, tiny_episode
+from pipeline.active.uncertainty import UncertaintyConfig, run_uncertainty_experiment
+from pipeline.data.load import load_scene
+from pipeline.data.protocols import ProtocolConfig
+from pipeline.data.synthetic import generate
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("gen") / "scene", seed=0, size=32, n_train=14, n_test=8)
+
+
+def load(scene_dir, cfg):
+    return load_scene(scene_dir, width=cfg.fit.image_width)
+
+
+def comparable(result):
+    d = result.to_dict()
+    drop = ("train_seconds", "per_candidate_ms", "selection_seconds", "fisher_seconds", "peak_rss_mb")
+    d["rounds"] = [{k: v for k, v in r.items() if k not in drop} for r in d["rounds"]]
+    d.pop("wall_seconds")
+    return d
+
+
+@pytest.fixture(scope="module")
+def gopre_run(scene_dir):
+    cfg = tiny_episode(strategy="gopre")
+    seen = []
+    result = run_episode(load(scene_dir, cfg), cfg, on_round=seen.append)
+    return cfg, result, seen
+
+
+def test_episode_end_to_end_records_every_round(gopre_run):
+    cfg, result, seen = gopre_run
+    budget, initial = cfg.protocol.budget, cfg.protocol.initial_views
+    assert len(result.initial) == initial and len(result.selected) == budget - initial
+    assert not set(result.selected) & set(result.initial)
+    assert [r.num_views for r in result.rounds] == list(range(initial, budget + 1))
+    assert seen == result.rounds  # the callback saw every round, the final one included
+    for r in result.rounds[:-1]:
+        assert len(r.selected) == 1 and r.selected[0] in r.scores
+        assert len(r.scores) == r.candidates and r.per_candidate_ms > 0 and r.peak_rss_mb > 0
+    assert result.rounds[-1].iteration == cfg.fit.iterations
+    assert result.final["test_views"] == len(result.test_ids)
+    assert result.final["lpips"] is None and result.final["lpips_status"] == "disabled"
+    assert result.final["psnr"] > 12  # far above an empty render of this scene (~7 dB)
+    json.dumps(result.to_dict())  # records are plain JSON
+
+
+def test_same_seed_same_selections_and_metrics(scene_dir, gopre_run):
+    cfg, first, _ = gopre_run
+    again = run_episode(load(scene_dir, cfg), cfg)
+    assert comparable(again) == comparable(first)
+
+
+def test_killed_episode_resumes_to_the_uninterrupted_result(scene_dir, gopre_run, tmp_path):
+    cfg, uninterrupted, _ = gopre_run
+
+    class Killed(Exception):
+        pass
+
+    def kill_after_first(rec):
+        if rec.round == 0:
+            raise Killed
+
+    with pytest.raises(Killed):
+        run_episode(load(scene_dir, cfg), cfg, tmp_path, on_round=kill_after_first)
+    resumed_rounds = []
+    resumed = run_episode(load(scene_dir, cfg), cfg, tmp_path, on_round=resumed_rounds.append)
+    assert [r.round for r in resumed_rounds] == [1, 2]  # round 0 was not redone
+    assert comparable(resumed) == comparable(uninterrupted)
+    # a finished episode reloads its result without training again
+    assert comparable(run_episode(load(scene_dir, cfg), cfg, tmp_path)) == comparable(uninterrupted)
+
+
+def test_resume_under_a_different_config_is_refused(scene_dir, tmp_path):
+    cfg = tiny_episode(strategy="random")
+    run_episode(load(scene_dir, cfg), cfg.with_changes(protocol=ProtocolConfig(initial_views=2, budget=3)),
+                tmp_path)
+    with pytest.raises(ValueError, match="different config"):
+        run_episode(load(scene_dir, cfg), cfg, tmp_path)
+
+
+@pytest.mark.parametrize("policy", ["reload", "continue"])
+def test_post_selection_policies(scene_dir, policy):
+    cfg = tiny_episode(strategy="coverage", post_selection=policy)
+    result = run_episode(load(scene_dir, cfg), cfg)
+    iters = [r.iteration for r in result.rounds]
+    if policy == "reload":  # schedules restart from zero after every pick
+        assert iters[:-1] == [cfg.epochs_per_view * n for n in (2, 3)]
+    else:
+        assert iters[:-1] == [40, 100]
+    assert iters[-1] == cfg.fit.iterations
+
+
+def test_goal_protocol_and_batches_and_pool_reduction(scene_dir):
+    cfg = tiny_episode(strategy="fisherrf", views_per_round=2, pool_keep_fraction=0.5,
+                       protocol=ProtocolConfig(kind="goal", initial_views=2, budget=5, probes=3))
+    result = run_episode(load(scene_dir, cfg), cfg)
+    assert [len(r.selected) for r in result.rounds] == [2, 1, 0]
+    assert result.rounds[0].candidates == 6  # half of the 12 remaining pool views
+
+
+def test_unknown_strategy_and_wrong_resolution_are_refused(scene_dir):
+    cfg = tiny_episode(strategy="nope")
+    with pytest.raises(ValueError, match="unknown strategy"):
+        run_episode(load(scene_dir, cfg), cfg)
+    with pytest.raises(ValueError, match="fit.image_width"):
+        run_episode(load_scene(scene_dir, width=24), tiny_episode())
+
+
+def test_bad_config_is_refused():
+    with pytest.raises(ValueError, match="post_selection"):
+        tiny_episode(post_selection="restart")
+    with pytest.raises(ValueError, match="pool_keep_fraction"):
+        tiny_episode(pool_keep_fraction=0.0)
+
+
+def test_uncertainty_experiment_gives_curves_and_ause(scene_dir):
+    episode = tiny_episode()
+    scene = load(scene_dir, episode)
+    out = run_uncertainty_experiment(scene, episode, UncertaintyConfig(train_views=4, iterations=120,
+                                                                       map_views=2))
+    assert set(out["curves"]) == {"gopre", "fisherrf", "activenerf", "random", "oracle"}
+    assert out["ause"]["oracle"] == 0 and all(v >= -1e-12 for v in out["ause"].values())
+    assert len(out["psnr"]) == len(out["test_ids"]) == 8
+    assert out["variance_maps"].shape == (2, 32, 32, 3) and bool((out["variance_maps"] >= 0).all())
