@@ -15,8 +15,11 @@ $(STAMP): pyproject.toml
 .PHONY: env demo test bench
 env: $(STAMP)
 
+# The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
+# MLflow tracking, then its report in reports/demo/.
 demo: $(STAMP)
-	$(BIN)/python -m pipeline.demo
+	$(BIN)/pipeline-run experiment=demo
+	$(BIN)/pipeline-report outputs/demo --out reports/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

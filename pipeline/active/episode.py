@@ -96,8 +96,10 @@ def uniform_subset(ids: list[int], count: int | None) -> list[int]:
 class Episode:
     """The mutable state of one episode between rounds (what a checkpoint holds)."""
 
-    def __init__(self, scene: Scene, cfg: EpisodeConfig):
+    def __init__(self, scene: Scene, cfg: EpisodeConfig, device: str | torch.device | None = None):
         self.scene, self.cfg = scene, cfg
+        self.device = torch.device(device or "cpu")
+        self.background = scene.background.to(self.device)
         self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
         self.pool = scene.split(self.views.pool_split)
         self.test = scene.split(self.views.test_split)
@@ -107,12 +109,15 @@ class Episode:
         self.strategy = make_strategy(cfg.strategy, **cfg.strategy_options)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.curve_ids = uniform_subset(self.views.test_ids, cfg.curve_test_views)
-        self.init = initial_gaussians(scene, cfg)
+        self.init = initial_gaussians(scene, cfg).to(self.device)
         self.taken = list(self.views.initial_ids)
         self.records: list[RoundRecord] = []
         self.trainer = self._new_trainer()
         self.done = False
         self.final: dict = {}
+
+    def images(self, split, ids: list[int]) -> torch.Tensor:
+        return split.images.stack(ids).to(self.device)  # [len(ids), H, W, 3]
 
     def _new_trainer(self) -> Trainer:
         fit = self.cfg.fit
@@ -120,8 +125,8 @@ class Episode:
             # the paper resets opacities after every selection instead of on 3DGS's fixed schedule;
             # both would put resets right before an evaluation of the PSNR-vs-views curve
             fit = fit.with_changes(densify=replace(fit.densify, periodic_opacity_reset=False))
-        return Trainer(self.init, self.pool.cameras[self.taken], self.pool.images.stack(self.taken),
-                       fit, self.scene.background)
+        return Trainer(self.init, self.pool.cameras[self.taken], self.images(self.pool, self.taken),
+                       fit, self.background)
 
     # -- checkpoint ---------------------------------------------------------------------------
     def state(self, key: str) -> dict:
@@ -132,7 +137,7 @@ class Episode:
     def restore(self, state: dict) -> None:
         self.taken = list(state["taken"])
         self.records = [RoundRecord(**r) for r in state["records"]]
-        self.trainer.set_views(self.pool.cameras[self.taken], self.pool.images.stack(self.taken))
+        self.trainer.set_views(self.pool.cameras[self.taken], self.images(self.pool, self.taken))
         self.trainer.load_state_dict(state["trainer"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
@@ -147,7 +152,7 @@ class Episode:
 
     def evaluate_curve(self) -> tuple[float, float]:
         m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.curve_ids],
-                           self.test.images.stack(self.curve_ids), self.scene.background).mean()
+                           self.images(self.test, self.curve_ids), self.background).mean()
         return m["psnr"], m["ssim"]
 
     def record(self, train_seconds: float) -> RoundRecord:
@@ -169,8 +174,8 @@ class Episode:
             remaining = reduce_pool(remaining, self.cfg.pool_keep_fraction, self.generator)
         count = min(self.cfg.views_per_round, self.views.budget - len(self.taken), len(remaining))
         ctx = SelectionContext(self.trainer.gaussians, self.pool.cameras[remaining], remaining,
-                               self.pool.cameras[self.taken], self.scene.background, self.generator,
-                               self.pool.cameras[rec.probes], self.pool.images.stack(self.taken),
+                               self.pool.cameras[self.taken], self.background, self.generator,
+                               self.pool.cameras[rec.probes], self.images(self.pool, self.taken),
                                self.trainer.settings)
         sel = self.strategy.select(ctx, count)
         rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)
@@ -185,7 +190,7 @@ class Episode:
         if policy == "reload":
             self.trainer = self._new_trainer()
             return
-        self.trainer.set_views(self.pool.cameras[self.taken], self.pool.images.stack(self.taken))
+        self.trainer.set_views(self.pool.cameras[self.taken], self.images(self.pool, self.taken))
         if policy == "reset_opacity":
             self.trainer.reset_opacity()
 
@@ -196,7 +201,7 @@ class Episode:
         self.records.append(rec)
         lpips = LpipsMetric() if self.cfg.lpips else None
         m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.views.test_ids],
-                           self.test.images.stack(self.views.test_ids), self.scene.background, lpips)
+                           self.images(self.test, self.views.test_ids), self.background, lpips)
         self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "disabled",
                       "test_views": len(self.views.test_ids), "per_view_psnr": m.psnr,
                       "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.gaussians),
@@ -206,11 +211,12 @@ class Episode:
 
 def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | None = None,
                 on_round: Callable[[RoundRecord], None] | None = None,
-                progress: bool = False) -> EpisodeResult:
+                progress: bool = False, device: str | torch.device | None = None) -> EpisodeResult:
     """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
-    checkpointed), including the final one; it may raise to stop the episode."""
+    checkpointed), including the final one; it may raise to stop the episode. ``device``: where
+    the model and images live (default CPU); records are identical in form on every device."""
     start = time.perf_counter()
-    ep = Episode(scene, cfg)
+    ep = Episode(scene, cfg, device)
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
     key = fingerprint({"scene": str(scene.root), "config": cfg.to_dict()})
     state = load_checkpoint(folder, key)

@@ -37,7 +37,7 @@ def _check_pair(pred: Tensor, gt: Tensor) -> None:
 def psnr_value(pred: Tensor, gt: Tensor) -> float:
     """PSNR in dB of one view: pred, gt [H, W, 3] in [0, 1] (pred is clamped)."""
     _check_pair(pred, gt)
-    mse = float((pred.clamp(0, 1).double() - gt.double()).square().mean())
+    mse = float((pred.clamp(0, 1).double() - gt.to(pred.device).double()).square().mean())
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 

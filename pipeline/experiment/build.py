@@ -59,8 +59,19 @@ def _set_dotted(job: dict, dotted: str, value) -> None:
     node[parts[-1]] = value
 
 
+def _leaves(tree: dict, prefix: str = "") -> dict[str, object]:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_leaves(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def _axes(cfg: DictConfig) -> list[dict]:
-    sweep = _container(cfg, "sweep") or {}
+    """Sweep axes: every list leaf of ``sweep`` (nested like the job, e.g. sweep.protocol.probes)."""
+    sweep = _leaves(_container(cfg, "sweep") or {})
     for key, values in sweep.items():
         if not isinstance(values, list) or not values:
             raise ConfigError(f"sweep.{key}: expected a non-empty list of values, got {values!r}")

@@ -59,12 +59,14 @@ def run_episode_job(job: dict, scene: Scene, folder: Path) -> dict:
     def on_round(rec):
         _log(folder, f"round {rec.round}: {rec.num_views} views, psnr {rec.test_psnr:.2f}, "
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
-    result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round)
+    result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round,
+                         device=job["execution"]["device"])
     views = scene.split(result.test_split)
     shown = result.test_ids[:job["renders"]]
     with torch.no_grad():
-        preds = render(result.gaussians, views.cameras[shown], scene.background).rgb
-    truth = views.images.stack(shown)
+        background = scene.background.to(result.gaussians.means)
+        preds = render(result.gaussians, views.cameras[shown], background).rgb
+    truth = views.images.stack(shown).to(preds)
     artifacts = {"selected_views.json": json.dumps({"initial": result.initial, "selected": result.selected,
                                                     "probes": result.probes}).encode()}
     for i, view in enumerate(shown):

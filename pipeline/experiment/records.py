@@ -92,3 +92,46 @@ class RecordsFile:
         tmp = self.path.with_suffix(".tmp")
         self.frame.to_parquet(tmp, index=False)
         os.replace(tmp, self.path)
+
+
+def records_from_mlflow(uri: str, experiment: str) -> pd.DataFrame:
+    """Rebuild the records (final and round rows of episode jobs) from an MLflow experiment."""
+    from mlflow import MlflowClient
+
+    client = MlflowClient(tracking_uri=uri)
+    found = client.get_experiment_by_name(experiment)
+    if found is None:
+        raise ValueError(f"{uri}: no MLflow experiment named {experiment!r}")
+    rows, token = [], None
+    while True:
+        page = client.search_runs([found.experiment_id], "tags.config_hash != ''", max_results=1000,
+                                  page_token=token)
+        for run in page:
+            rows += _rows_of_run(client, run, experiment)
+        token = page.token
+        if not token:
+            break
+    if not rows:
+        raise ValueError(f"{uri}: experiment {experiment!r} has no job runs")
+    return pd.DataFrame(rows)
+
+
+def _rows_of_run(client, run, experiment: str) -> list[dict]:
+    tags, metrics, params = run.data.tags, run.data.metrics, run.data.params
+    base = {"sweep": experiment, "config_hash": tags["config_hash"], "run_id": run.info.run_id,
+            "status": run.info.status, "job_kind": tags.get("kind", "episode"), "dataset": tags.get("dataset"),
+            "scene": tags.get("scene"), "method": tags.get("method"), "strategy": tags.get("strategy"),
+            "protocol": tags.get("protocol"), "seed": int(tags.get("seed", 0)),
+            "setting": tags.get("setting", ""), "axes": params.get("axes", "{}")}
+    final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": metrics.get("final_ssim"),
+             "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
+             "lpips_status": params.get("splat.lpips")}
+    history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
+               for key in ("test_psnr", "test_ssim", "per_candidate_ms", "selection_seconds")}
+    picks = list(history["per_candidate_ms"].values())
+    final["per_candidate_ms"] = sum(picks) / len(picks) if picks else None
+    sel = list(history["selection_seconds"].values())
+    final["selection_seconds"] = sum(sel) / len(sel) if sel else None
+    rounds = [{**base, "kind": "round", "num_views": step, "psnr": value,
+               "ssim": history["test_ssim"].get(step)} for step, value in sorted(history["test_psnr"].items())]
+    return rounds + [final]

@@ -65,20 +65,36 @@ def _headline(outcome: dict) -> str:
     return f"AUSE {json.dumps({k: round(v, 3) for k, v in result['ause'].items()})}"
 
 
+def save_artifacts(output_dir: Path, job: dict, outcome: dict) -> None:
+    """Artifacts also go to <output_dir>/jobs/<hash>/artifacts (what reports read offline)."""
+    folder = output_dir / "jobs" / job["config_hash"] / "artifacts"
+    for name, data in (outcome.get("artifacts") or {}).items():
+        path = folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    if outcome.get("result") is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "result.json").write_text(json.dumps(outcome["result"], default=str))
+
+
 def prepare_scenes(jobs: list[dict]) -> dict[str, Scene]:
     """Generate the embedded scene if needed, then read each (scene, resolution) once."""
-    scenes = {}
+    scenes, seen = {}, set()
     for job in jobs:
         key = scene_key(job)
-        if key in scenes:
+        if key in seen:
             continue
-        path = Path(job["scene_path"])
+        seen.add(key)
+        path = Path(job["scene_path"]).resolve()
         if job.get("generate") and not (path / "transforms_test.json").exists():
             options = job["generate"]
             print(f"generating the default scene into {path} ...", flush=True)
             generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
-        scenes[key] = load_scene(path, width=episode_config(job).fit.image_width)
+        try:
+            scenes[key] = load_scene(path, width=episode_config(job).fit.image_width)
+        except Exception as err:  # its jobs read the scene themselves, fail and are recorded FAILED
+            print(f"warning: cannot read {path}: {err}", flush=True)
     return scenes
 
 
@@ -111,6 +127,7 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
             except Exception as err:  # tracking trouble must not lose the job's records
                 print(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: {err}", flush=True)
                 run_id = None
+            save_artifacts(output_dir, job, outcome)
             records.add(job_rows(job, outcome, run_id))
             progress.slots = getattr(executor, "slots", 1)
             progress.update(job, outcome)

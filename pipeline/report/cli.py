@@ -1,0 +1,49 @@
+"""``pipeline-report``: turn a sweep's records into tables and figures.
+
+    pipeline-report outputs/demo                      # -> reports/demo/
+    pipeline-report outputs/table1_global --out reports/table1
+    pipeline-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
+
+Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipeline.report.report import load_records, make_report
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="pipeline-report", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("source", nargs="?", type=Path, help="a sweep output folder or its records.parquet")
+    parser.add_argument("--out", type=Path, default=None, help="default: reports/<sweep name>")
+    parser.add_argument("--mlflow-uri", default=None, help="read the runs from MLflow instead")
+    parser.add_argument("--experiment", default=None, help="MLflow experiment (= sweep name)")
+    args = parser.parse_args(argv)
+    try:
+        if args.mlflow_uri or args.experiment:
+            if not (args.mlflow_uri and args.experiment):
+                parser.error("--mlflow-uri and --experiment go together")
+            from pipeline.experiment.records import records_from_mlflow  # the tracking edge
+            frame, source = records_from_mlflow(args.mlflow_uri, args.experiment), Path(".")
+        elif args.source is None:
+            parser.error("give a sweep folder, or --mlflow-uri and --experiment")
+        else:
+            frame, source = load_records(args.source), args.source
+        out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
+        summary = make_report(source, out, frame)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"pipeline-report: error: {err}", file=sys.stderr)
+        return 1
+    print(summary["tables"])
+    print(f"report written to {summary['out']}/report.md ({summary['runs']} runs, {summary['failed']} failed); "
+          f"figures: {', '.join(summary['figures']) or 'none'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

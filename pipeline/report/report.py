@@ -1,0 +1,137 @@
+"""A sweep's records -> tables (.md/.tex), figures and the list of runs they were made from.
+
+The layout follows what the sweep contains: without sweep axes, methods x (dataset x PSNR, SSIM,
+LPIPS) (tables 1-4); with axes (probe count K, pool reduction), one row per setting with PSNR,
+selection cost (tables 5-6); uncertainty jobs give the AUSE table and the sparsification figure.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline.report import figures
+from pipeline.report.tables import Table, build_table, to_latex, to_markdown
+
+RECORDS = "records.parquet"
+
+
+def load_records(source: str | Path) -> pd.DataFrame:
+    """Records from a sweep folder or a records.parquet path; a clear error when there are none."""
+    path = Path(source)
+    if path.is_dir():
+        path = path / RECORDS
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no records file (run a sweep first, or pass its output folder)")
+    frame = pd.read_parquet(path)
+    if frame.empty or "kind" not in frame:
+        raise ValueError(f"{path}: the records file has no rows")
+    return frame
+
+
+def _finished(frame: pd.DataFrame, kind: str, job_kind: str) -> pd.DataFrame:
+    ok = frame["status"] == "FINISHED"
+    return frame[ok & (frame["kind"] == kind) & (frame["job_kind"] == job_kind)]
+
+
+def episode_tables(frame: pd.DataFrame, title: str) -> list[Table]:
+    final = _finished(frame, "final", "episode")
+    if final.empty:
+        return []
+    methods = list(dict.fromkeys(final["method"]))
+    if (final["setting"].fillna("") != "").any():
+        final = final.assign(row=[f"{m}, {s}" if len(methods) > 1 else s
+                                  for m, s in zip(final["method"], final["setting"])])
+        return [build_table(final, title, "row", None,
+                            ["psnr", "ssim", "per_candidate_ms", "selection_seconds"])]
+    final = final.rename(columns={"method": "Method"})
+    return [build_table(final, title, "Method", "dataset", ["psnr", "ssim", "lpips"], methods)]
+
+
+def ause_table(frame: pd.DataFrame, title: str) -> list[Table]:
+    rows = _finished(frame, "ause", "uncertainty")
+    if rows.empty:
+        return []
+    rows = rows.rename(columns={"uncertainty_method": "Uncertainty"})
+    return [build_table(rows, f"{title}: AUSE (PSNR, lower is better)", "Uncertainty", "dataset", ["ause"])]
+
+
+def _artifact_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str) -> dict[str, list[Path]]:
+    if sweep_dir is None or final.empty:
+        return {}
+    first_scene, first_seed = final["scene"].iloc[0], final["seed"].min()
+    chosen = final[(final["scene"] == first_scene) & (final["seed"] == first_seed)]
+    out = {}
+    for _, row in chosen.drop_duplicates("method").iterrows():
+        folder = sweep_dir / "jobs" / row["config_hash"] / "artifacts" / sub
+        label = f"{row['method']}" + (f" ({row['setting']})" if row.get("setting") else "")
+        out[label] = sorted(folder.glob("*.png"))[:4] if folder.exists() else []
+    return out
+
+
+def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict[str, dict]:
+    fig_dir = out / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    made = {}
+    rounds = _finished(frame, "round", "episode")
+    if not rounds.empty:
+        made["psnr_vs_views.png"] = figures.psnr_vs_views(rounds, fig_dir / "psnr_vs_views.png")
+    curves = _finished(frame, "sparsification", "uncertainty")
+    if not curves.empty:
+        made["sparsification.png"] = figures.sparsification(
+            curves, _finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
+    renders = _artifact_images(sweep_dir, _finished(frame, "final", "episode"), "renders")
+    if any(renders.values()):
+        made["qualitative.png"] = figures.image_grid(
+            renders, fig_dir / "qualitative.png", "ground truth | render, per test view")
+    maps = _artifact_images(sweep_dir, _finished(frame, "final", "uncertainty"), "uncertainty")
+    if any(maps.values()):
+        made["uncertainty_maps.png"] = figures.image_grid(
+            {f"view {i}": [p] for files in maps.values() for i, p in enumerate(files)},
+            fig_dir / "uncertainty_maps.png", "ground truth | render | squared error | predictive variance")
+    return made
+
+
+def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
+    final = frame[frame["kind"] == "final"]
+    cols = [c for c in ("sweep", "method", "dataset", "scene", "seed", "setting", "config_hash", "run_id",
+                        "status", "psnr", "attempts") if c in final]
+    return final[cols].sort_values(["method", "dataset", "scene", "seed"]).reset_index(drop=True)
+
+
+def frame_to_markdown(frame: pd.DataFrame) -> str:
+    def text(v):
+        return "n/a" if v is None or (isinstance(v, float) and v != v) else (f"{v:.2f}" if isinstance(v, float) else str(v))
+    lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
+    lines += ["| " + " | ".join(text(v) for v in row) + " |" for row in frame.itertuples(index=False)]
+    return "\n".join(lines)
+
+
+def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None) -> dict:
+    """Write report.md, tables (.md, .tex), figures/ and runs.csv into ``out``; returns a summary."""
+    sweep_dir = Path(source) if Path(source).is_dir() else None
+    frame = load_records(source) if frame is None else frame
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    title = str(frame["sweep"].iloc[0])
+    tables = episode_tables(frame, title) + ause_table(frame, title)
+    markdown = "".join(to_markdown(t) + "\n" for t in tables)
+    (out / "table.md").write_text(markdown)
+    (out / "table.tex").write_text("\n".join(to_latex(t) for t in tables))
+    made = make_figures(frame, sweep_dir, out)
+    runs = runs_table(frame)
+    runs.to_csv(out / "runs.csv", index=False)
+    failed = runs[runs["status"] != "FINISHED"]
+    seeds = sorted(set(runs["seed"]))
+    lines = [f"# Report: {title}", "", markdown, "## Figures", ""]
+    lines += [f"![{name}](figures/{name})" for name in made]
+    lines += ["", "## Runs used", "",
+              f"{len(runs)} jobs from sweep `{title}`, seeds {seeds}; {len(failed)} failed (excluded). "
+              "Every row: config hash and MLflow run id (runs.csv).", "",
+              frame_to_markdown(runs)]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    return {"out": str(out), "tables": markdown, "figures": {k: json.loads(json.dumps(v, default=str))
+                                                             for k, v in made.items()},
+            "runs": len(runs), "failed": len(failed)}

@@ -1,0 +1,155 @@
+"""Tables from a sweep's records: Markdown and LaTeX (booktabs), best / second / third marked.
+
+Aggregation: per (method, dataset, setting, seed) the mean over scenes, then mean +- std over
+seeds (std shown only when there are several seeds). Missing cells (a dataset not run, LPIPS
+unavailable) print as "n/a", never as zeros. Ranks are computed per column on the means, in the
+metric's direction (LPIPS and times: lower is better).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+LOWER_IS_BETTER = {"lpips", "per_candidate_ms", "selection_seconds", "ause", "wall_seconds"}
+METRIC_LABELS = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "per_candidate_ms": "Per-cand. (ms)",
+                 "selection_seconds": "Selection (s)", "ause": "AUSE", "wall_seconds": "Wall (s)"}
+DIGITS = {"psnr": 2, "ssim": 3, "lpips": 3, "per_candidate_ms": 1, "selection_seconds": 2, "ause": 3,
+          "wall_seconds": 0}
+MISSING = "n/a"
+
+
+@dataclass
+class Cell:
+    mean: float | None
+    std: float | None = None
+    n: int = 0
+    rank: int | None = None   # 1 best, 2 second, 3 third
+
+
+@dataclass
+class Table:
+    title: str
+    row_label: str
+    rows: list[str]
+    columns: list[tuple[str, str]]           # (group, metric)
+    cells: dict[tuple[str, tuple[str, str]], Cell]
+    notes: list[str] = field(default_factory=list)
+
+
+def _aggregate(final: pd.DataFrame, row_key: str, group_key: str | None, metric: str) -> dict:
+    if metric not in final or final[metric].isna().all():
+        return {}
+    keys = [row_key] + ([group_key] if group_key else [])
+    data = final.dropna(subset=[metric])
+    per_seed = data.groupby(keys + ["seed"], dropna=False)[metric].mean().reset_index()
+    out = {}
+    for key, part in per_seed.groupby(keys, dropna=False):
+        key = key if isinstance(key, tuple) else (key,)
+        values = part[metric].to_numpy(dtype=float)
+        std = float(np.std(values, ddof=1)) if len(values) > 1 else None
+        out[(key[0], key[1] if group_key else "")] = Cell(float(values.mean()), std, len(values))
+    return out
+
+
+def _rank(cells: dict, rows: list[str], column: tuple[str, str]) -> None:
+    present = [(r, cells[(r, column)]) for r in rows if (r, column) in cells and cells[(r, column)].mean is not None]
+    sign = 1 if column[1] in LOWER_IS_BETTER else -1
+    distinct = sorted({round(sign * c.mean, 10) for _, c in present})
+    for _, cell in present:
+        place = distinct.index(round(sign * cell.mean, 10)) + 1
+        cell.rank = place if place <= 3 and len(present) > 1 else None
+
+
+def build_table(final: pd.DataFrame, title: str, row_key: str, group_key: str | None,
+                metrics: list[str], row_order: list[str] | None = None) -> Table:
+    """Rows = values of ``row_key``; columns = (group, metric) for each group value and metric."""
+    rows = row_order or list(dict.fromkeys(final[row_key]))
+    groups = list(dict.fromkeys(final[group_key])) if group_key else [""]
+    columns = [(g, m) for g in groups for m in metrics]
+    cells = {}
+    for metric in metrics:
+        for (row, group), cell in _aggregate(final, row_key, group_key, metric).items():
+            cells[(row, (group, metric))] = cell
+    for column in columns:
+        _rank(cells, rows, column)
+    notes = []
+    if "lpips" in metrics and not any(c[1] == "lpips" for (_, c) in cells):
+        status = final["lpips_status"].dropna().unique() if "lpips_status" in final else []
+        notes.append("LPIPS unavailable" + (f": {status[0]}" if len(status) else ""))
+    return Table(title, row_key, rows, columns, cells, notes)
+
+
+def format_cell(cell: Cell | None, metric: str) -> str:
+    if cell is None or cell.mean is None or (isinstance(cell.mean, float) and math.isnan(cell.mean)):
+        return MISSING
+    d = DIGITS.get(metric, 3)
+    text = f"{cell.mean:.{d}f}"
+    if cell.std is not None:
+        text += f" ± {cell.std:.{d}f}"
+    return text
+
+
+def to_markdown(table: Table) -> str:
+    groups = list(dict.fromkeys(g for g, _ in table.columns))
+    header = [table.row_label] + [f"{g} {METRIC_LABELS.get(m, m)}".strip() for g, m in table.columns]
+    lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |",
+             "|" + "---|" * len(header)]
+    marks = {1: ("**", "**"), 2: ("_", "_"), 3: ("", " ³")}
+    for row in table.rows:
+        out = [str(row)]
+        for column in table.columns:
+            cell = table.cells.get((row, column))
+            text = format_cell(cell, column[1])
+            if cell is not None and cell.rank in marks and text != MISSING:
+                left, right = marks[cell.rank]
+                text = f"{left}{text}{right}"
+            out.append(text)
+        lines.append("| " + " | ".join(out) + " |")
+    lines.append("")
+    lines.append("Best in **bold**, second in _italics_, third marked ³." + (
+        f" Groups: {', '.join(groups)}." if groups != [""] else ""))
+    lines += [f"Note: {n}" for n in table.notes]
+    return "\n".join(lines) + "\n"
+
+
+def _tex_escape(text: str) -> str:
+    return (str(text).replace("\\", r"\textbackslash{}").replace("_", r"\_").replace("&", r"\&")
+            .replace("%", r"\%").replace("#", r"\#"))
+
+
+def to_latex(table: Table) -> str:
+    groups = list(dict.fromkeys(g for g, _ in table.columns))
+    per_group = len(table.columns) // max(len(groups), 1)
+    arrows = {m: (r"$\downarrow$" if m in LOWER_IS_BETTER else r"$\uparrow$") for _, m in table.columns}
+    lines = [r"% requires \usepackage{booktabs} and \usepackage{xcolor}",
+             r"\providecommand{\best}[1]{\textbf{#1}}",
+             r"\providecommand{\second}[1]{\underline{#1}}",
+             r"\providecommand{\third}[1]{\textit{#1}}",
+             r"\begin{table}[t]", r"\centering", rf"\caption{{{_tex_escape(table.title)}}}",
+             r"\begin{tabular}{l" + "c" * len(table.columns) + "}", r"\toprule"]
+    if groups != [""]:
+        lines.append(" & " + " & ".join(rf"\multicolumn{{{per_group}}}{{c}}{{{_tex_escape(g)}}}"
+                                         for g in groups) + r" \\")
+        lines.append("".join(rf"\cmidrule(lr){{{2 + i * per_group}-{1 + (i + 1) * per_group}}}"
+                             for i in range(len(groups))))
+    lines.append(_tex_escape(table.row_label) + " & " + " & ".join(
+        f"{METRIC_LABELS.get(m, m)}{arrows[m]}" for _, m in table.columns) + r" \\")
+    lines.append(r"\midrule")
+    macro = {1: r"\best", 2: r"\second", 3: r"\third"}
+    for row in table.rows:
+        out = [_tex_escape(row)]
+        for column in table.columns:
+            cell = table.cells.get((row, column))
+            text = format_cell(cell, column[1]).replace("±", r"$\pm$")
+            if cell is not None and cell.rank in macro and text != MISSING:
+                text = f"{macro[cell.rank]}{{{text}}}"
+            out.append(text)
+        lines.append(" & ".join(out) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    lines += [rf"{{\footnotesize Note: {_tex_escape(n)}\par}}" for n in table.notes]
+    lines.append(r"\end{table}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,202 @@
+"""The sweep pipeline with real Hydra, Ray and MLflow (no mocks): presets, executors, tracking,
+resume, retries and failures."""
+
+import glob
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from pipeline.experiment.app import CONF_DIR
+from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.records import RecordsFile, records_from_mlflow
+from pipeline.experiment.sweep import run_sweep
+
+PRESETS = sorted(Path(p).stem for p in glob.glob(str(CONF_DIR / "experiment" / "*.yaml")))
+TINY = ["splat=tiny", "splat.iterations=100", "dataset=[generated]", "dataset.generated.generate.size=32",
+        "dataset.generated.generate.n_train=12", "dataset.generated.generate.n_test=6",
+        "protocol.initial_views=2", "protocol.budget=3", "protocol.probes=3", "uncertainty.train_views=3",
+        "uncertainty.iterations=60", "uncertainty.map_views=1", "uncertainty.methods=[gopre,fisherrf]"]
+
+
+def composed(overrides):
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides)
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    return tmp_path_factory.mktemp("sweeps")
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_composes_at_paper_scale_and_says_how_to_run_it(preset):
+    text = (CONF_DIR / "experiment" / f"{preset}.yaml").read_text()
+    assert text.startswith("# @package _global_") and "pipeline-run experiment=" + preset in text
+    jobs = expand_jobs(composed([f"experiment={preset}", "data_root=/datasets"]))
+    assert jobs and len({j["config_hash"] for j in jobs}) == len(jobs)
+    if preset not in ("demo", "debug"):
+        assert jobs[0]["splat"]["preset"] == "paper"
+        assert all(j["scene_path"].startswith("/datasets/") for j in jobs)
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_runs_in_its_tiny_form(preset, base):
+    cfg = composed([f"experiment={preset}", *TINY, "executor=local", "tracking=none",
+                    f"output_dir={base / ('tiny_' + preset)}", "seeds=[0]"])
+    OmegaConf.set_struct(cfg, False)
+    cfg.method = {k: cfg.method[k] for k in list(cfg.method)[:1]}  # the tiny form: one method
+    cfg.sweep = OmegaConf.create({k: {kk: [v[0]] for kk, v in vals.items()} for k, vals in cfg.sweep.items()})
+    summary = run_sweep(cfg)
+    assert summary.failed == 0 and summary.finished == summary.jobs >= 1
+
+
+def test_unknown_keys_and_bad_values_fail_at_start_up_naming_the_key(base):
+    with pytest.raises(ConfigCompositionException, match="colour"):
+        composed(["splat.colour=1"])
+    with pytest.raises(ConfigCompositionException, match="nosuchmethod"):
+        composed(["method=[nosuchmethod]"])
+    with pytest.raises(ConfigError, match="method.gopre.*tau"):
+        expand_jobs(composed(["method.gopre.options.tau=-1"]))
+    with pytest.raises(ConfigError, match="data_root is not set.*blender"):
+        expand_jobs(composed(["dataset=[blender]", "data_root=null"]))
+    with pytest.raises(ConfigError, match="post_selection"):
+        expand_jobs(composed(["splat.post_selection=restart"]))
+
+
+def metrics_of(frame):
+    final = frame[frame["kind"] == "final"].sort_values("method")
+    rounds = frame[frame["kind"] == "round"].sort_values(["method", "num_views"])
+    return final[["method", "psnr", "ssim", "selected"]].to_dict("records"), rounds["psnr"].tolist()
+
+
+def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_session, tmp_path):
+    common = ["experiment=demo", *TINY]
+    ray_dir, local_dir = base / "demo_ray", base / "demo_local"
+    summary = run_sweep(composed([*common, "executor=ray", "tracking=mlflow", f"output_dir={ray_dir}"]))
+    assert summary.finished == 4 and summary.failed == 0
+    local = run_sweep(composed([*common, "executor=local", "tracking=none", f"output_dir={local_dir}"]))
+    assert local.finished == 4
+    ray_records, local_records = RecordsFile(ray_dir).frame, RecordsFile(local_dir).frame
+    assert metrics_of(ray_records) == metrics_of(local_records)
+    # MLflow holds one parent and four children with tags, params, per-round metrics, artifacts
+    from mlflow import MlflowClient
+    client = MlflowClient(summary.tracking_uri)
+    exp = client.get_experiment_by_name("demo")
+    runs = client.search_runs([exp.experiment_id], "tags.config_hash != ''")
+    assert len(runs) == 4 and all(r.info.status == "FINISHED" for r in runs)
+    run = runs[0]
+    parent = run.data.tags["mlflow.parentRunId"]
+    assert client.get_run(parent).data.tags["kind"] == "sweep"
+    assert {"method", "dataset", "scene", "protocol", "seed", "config_hash"} <= set(run.data.tags)
+    assert run.data.params["protocol.budget"] == "3"
+    history = client.get_metric_history(run.info.run_id, "test_psnr")
+    assert sorted(m.step for m in history) == [2, 3]  # step = number of views
+    artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
+    assert {"selected_views.json", "renders", "config.json", "result.json"} <= artifacts
+    # the report reads the records (and MLflow) and makes the table and the figures
+    from pipeline.report.report import make_report
+    report = make_report(ray_dir, tmp_path / "report")
+    for method in ("gopre", "fisherrf", "random", "coverage"):
+        assert f"| {method} |" in report["tables"]
+    assert {"psnr_vs_views.png", "qualitative.png"} <= set(report["figures"])
+    from_mlflow = records_from_mlflow(summary.tracking_uri, "demo")
+    assert sorted(from_mlflow[from_mlflow["kind"] == "final"]["psnr"].round(6)) == \
+        sorted(ray_records[ray_records["kind"] == "final"]["psnr"].round(6))
+
+
+def test_relaunch_skips_finished_jobs_and_runs_only_new_ones(base):
+    out = base / "resume"
+    common = ["experiment=debug", *TINY, f"output_dir={out}", "executor=local", "tracking=mlflow"]
+    first = run_sweep(composed([*common, "method=[random]"]))
+    assert (first.finished, first.skipped) == (1, 0)
+    again = run_sweep(composed([*common, "method=[random,coverage]"]))
+    assert (again.jobs, again.skipped, again.finished) == (2, 1, 1)
+    frame = RecordsFile(out).frame  # tidy: one final row per job, round rows per views
+    assert set(frame["kind"]) == {"round", "final"}
+    assert frame[frame["kind"] == "final"]["config_hash"].is_unique and len(frame[frame["kind"] == "final"]) == 2
+    # MLflow alone is enough to skip: drop the records file
+    (out / "records.parquet").unlink()
+    third = run_sweep(composed([*common, "method=[random,coverage]"]))
+    assert (third.skipped, third.finished) == (2, 0)
+
+
+def broken_scene(good: Path, folder: Path) -> Path:
+    """A copy of a generated scene whose training images (but the first) are not PNGs."""
+    import shutil
+    shutil.copytree(good, folder)
+    for png in sorted((folder / "train").glob("r_*.png"))[1:]:
+        png.write_bytes(b"not a png")
+    return folder
+
+
+def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
+    out = base / "failing"
+    cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "job.retries=1"])
+    run_sweep(cfg)  # generates the good scene and runs it
+    good = Path(expand_jobs(cfg)[0]["scene_path"])
+    broken_scene(good, out / "data" / "broken")
+    OmegaConf.set_struct(cfg, False)
+    cfg.dataset.broken = {"format": "blender", "root": str(out / "data"), "scenes": ["broken"], "generate": None}
+    cfg.method = {"random": cfg.method.random, "coverage": {"strategy": "coverage", "options": {}}}
+    summary = run_sweep(cfg)
+    assert summary.failed == 2 and summary.finished == 1 and summary.skipped == 1
+    frame = RecordsFile(out).frame
+    failed = frame[frame["status"] == "FAILED"]
+    assert len(failed) == 2 and (failed["attempts"] == 2).all()
+    assert failed["error"].str.contains("r_").all()  # the traceback names the broken file
+    hash_ = failed["config_hash"].iloc[0]
+    assert "traceback" in (out / "jobs" / hash_ / "artifacts" / "traceback.txt").read_text().lower()
+    log = (out / "jobs" / hash_ / "log.txt").read_text()
+    assert "attempt 1/2 failed" in log and "attempt 2/2 failed" in log
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
+         "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
+         "--default-artifact-root", str(tmp_path / "server-artifacts"), "--workers", "1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "MLFLOW_ENABLE_ARTIFACTS_PROXY": "false"})
+    uri = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.time() + 120
+        while True:
+            try:
+                if urllib.request.urlopen(f"{uri}/health", timeout=2).status == 200:
+                    break
+            except OSError:
+                if time.time() > deadline or server.poll() is not None:
+                    raise RuntimeError("mlflow server did not come up") from None
+                time.sleep(0.5)
+        summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local",
+                                      "tracking=mlflow", f"tracking.uri={uri}", f"output_dir={base / 'server'}"]))
+        assert summary.finished == 1 and summary.tracking_uri == uri
+        frame = records_from_mlflow(uri, "debug")
+        final = frame[frame["kind"] == "final"]
+        assert len(final) == 1 and final["method"].iloc[0] == "random" and final["psnr"].iloc[0] > 5
+    finally:
+        server.terminate()
+        server.wait(timeout=30)

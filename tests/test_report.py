@@ -1,0 +1,127 @@
+"""Reports from a fixture set of records: marks, mean +- std, missing cells, LaTeX, figures."""
+
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.report.report import make_report
+from pipeline.report.tables import build_table, to_latex, to_markdown
+
+
+def final_row(method, dataset, scene, seed, psnr, ssim, lpips=None, setting="", **extra):
+    return {"sweep": "fixture", "config_hash": f"{method}-{dataset}-{scene}-{seed}-{setting}",
+            "run_id": None, "status": "FINISHED", "job_kind": "episode", "kind": "final", "dataset": dataset,
+            "scene": scene, "method": method, "strategy": method, "protocol": "global", "seed": seed,
+            "setting": setting, "axes": "{}", "psnr": psnr, "ssim": ssim, "lpips": lpips,
+            "lpips_status": "vgg" if lpips is not None else "LPIPS (vgg) unavailable: no weights", **extra}
+
+
+@pytest.fixture
+def records():
+    rows = []
+    # blender: two scenes, two seeds; psnr of (method, seed) = mean over the two scenes
+    values = {"gopre": [(25.0, 27.0), (26.0, 28.0)], "fisherrf": [(24.0, 26.0), (25.0, 25.0)],
+              "random": [(20.0, 22.0), (21.0, 21.0)], "coverage": [(23.0, 23.0), (23.0, 23.0)]}
+    for method, seeds in values.items():
+        for seed, (a, b) in enumerate(seeds):
+            rows.append(final_row(method, "blender", "lego", seed, a, 0.9, None))
+            rows.append(final_row(method, "blender", "chair", seed, b, 0.8, None))
+    # mipnerf360 run for two methods only, one seed, with LPIPS
+    rows.append(final_row("gopre", "mipnerf360", "bonsai", 0, 21.0, 0.6, 0.30))
+    rows.append(final_row("random", "mipnerf360", "bonsai", 0, 19.0, 0.5, 0.40))
+    for method in ("gopre", "random"):
+        for n, p in ((2, 12.0), (3, 15.0), (4, 18.0)):
+            rows.append({**final_row(method, "blender", "lego", 0, p + (method == "gopre"), 0.5),
+                         "kind": "round", "num_views": n})
+    failed = final_row("popgs", "blender", "lego", 0, None, None)
+    rows.append({**failed, "status": "FAILED", "error": "Traceback ..."})
+    return pd.DataFrame(rows)
+
+
+def test_mean_std_over_seeds_and_ranks(records):
+    final = records[(records["kind"] == "final") & (records["status"] == "FINISHED")]
+    table = build_table(final, "t", "method", "dataset", ["psnr", "ssim", "lpips"])
+    gopre = table.cells[("gopre", ("blender", "psnr"))]
+    per_seed = [26.0, 27.0]  # mean over lego/chair for seeds 0 and 1
+    assert gopre.mean == pytest.approx(np.mean(per_seed)) and gopre.std == pytest.approx(np.std(per_seed, ddof=1))
+    ranks = {m: table.cells[(m, ("blender", "psnr"))].rank for m in ("gopre", "fisherrf", "coverage", "random")}
+    assert ranks == {"gopre": 1, "fisherrf": 2, "coverage": 3, "random": None}
+    # LPIPS: lower is better; one seed -> no std
+    assert table.cells[("gopre", ("mipnerf360", "lpips"))].rank == 1
+    assert table.cells[("random", ("mipnerf360", "lpips"))].rank == 2
+    assert table.cells[("gopre", ("mipnerf360", "lpips"))].std is None
+
+
+def test_markdown_marks_and_missing_cells(records):
+    final = records[(records["kind"] == "final") & (records["status"] == "FINISHED")]
+    md = to_markdown(build_table(final, "Table 1", "method", "dataset", ["psnr", "ssim", "lpips"]))
+    row = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+           for line in md.splitlines() if line.startswith("| ") and not line.startswith("| method")}
+    assert row["gopre"][0] == "**26.50 ± 0.71**"
+    assert row["fisherrf"][0] == "_25.00 ± 0.00_"
+    assert row["coverage"][0] == "23.00 ± 0.00 ³"
+    assert row["random"][0] == "21.00 ± 0.00"
+    assert row["fisherrf"][3] == "n/a" and row["coverage"][5] == "n/a"  # mipnerf360 not run
+    assert row["gopre"][2] == "n/a"  # blender LPIPS unavailable, not zero
+    assert "0.000" not in row["gopre"][2]
+
+
+def test_latex_is_balanced_booktabs_with_macros(records):
+    final = records[(records["kind"] == "final") & (records["status"] == "FINISHED")]
+    tex = to_latex(build_table(final, "Global_results & more", "method", "dataset", ["psnr", "ssim", "lpips"]))
+    for env in ("table", "tabular"):
+        assert tex.count(rf"\begin{{{env}}}") == tex.count(rf"\end{{{env}}}") == 1
+    assert tex.count("{") == tex.count("}")
+    assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
+    assert r"\best{26.50 $\pm$ 0.71}" in tex and r"\second{" in tex and r"\third{" in tex
+    assert r"Global\_results \& more" in tex
+    body = [line for line in tex.splitlines() if line.endswith(r"\\") and not line.startswith(" &")]
+    columns = {line.count(" & ") for line in body if "multicolumn" not in line}
+    assert columns == {6}  # every row: label + 2 datasets x 3 metrics
+
+
+def test_setting_tables_for_sweep_axes():
+    rows = [final_row("gopre", "m360", "bonsai", s, 21.0 + k + 0.1 * s, 0.6, None,
+                      setting=f"protocol.probes={k}", per_candidate_ms=100.0 + 10 * k,
+                      selection_seconds=5.0 + k) for k in (1, 2) for s in (0, 1)]
+    from pipeline.report.report import episode_tables
+    table = episode_tables(pd.DataFrame(rows), "Table 5")[0]
+    assert table.rows == ["protocol.probes=1", "protocol.probes=2"]
+    assert table.cells[("protocol.probes=2", ("", "psnr"))].rank == 1
+    assert table.cells[("protocol.probes=1", ("", "per_candidate_ms"))].rank == 1  # lower is better
+
+
+def test_report_writes_tables_figures_and_the_runs_it_used(records, tmp_path):
+    path = tmp_path / "records.parquet"
+    records.to_parquet(path)
+    summary = make_report(path, tmp_path / "out")
+    assert summary["runs"] == len(records[records["kind"] == "final"]) and summary["failed"] == 1
+    series = summary["figures"]["psnr_vs_views.png"]["lego"]
+    assert set(series) == {"gopre", "random"}
+    assert series["gopre"] == [[2, 3, 4], [13.0, 16.0, 19.0]]
+    assert (tmp_path / "out" / "figures" / "psnr_vs_views.png").stat().st_size > 1000
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "gopre-blender-lego-0-" in report and "FAILED" in report  # traceable to config hashes
+    assert re.search(r"seeds \[0, 1\]", report)
+
+
+def test_sparsification_figure_and_ause_table(tmp_path):
+    rows = []
+    for name, curve, a in (("gopre", [20, 21, 22], 0.1), ("random", [20, 20, 20], 0.5), ("oracle", [20, 22, 24], 0.0)):
+        base = {**final_row("gopre", "blender", "lego", 0, None, None), "job_kind": "uncertainty"}
+        rows += [{**base, "kind": "sparsification", "uncertainty_method": name, "fraction": f, "psnr": v}
+                 for f, v in zip((0.0, 0.1, 0.2), curve)]
+        rows.append({**base, "kind": "ause", "uncertainty_method": name, "ause": a})
+    rows.append({**final_row("gopre", "blender", "lego", 0, 20.0, None), "job_kind": "uncertainty"})
+    path = tmp_path / "records.parquet"
+    pd.DataFrame(rows).to_parquet(path)
+    summary = make_report(path, tmp_path / "out")
+    assert set(summary["figures"]["sparsification.png"]) == {"gopre", "random", "oracle"}
+    assert "**0.000**" in summary["tables"] and "_0.100_" in summary["tables"]
+
+
+def test_missing_records_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no records file"):
+        make_report(tmp_path, tmp_path / "out")
