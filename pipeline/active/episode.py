@@ -202,7 +202,7 @@ class Episode:
         lpips = LpipsMetric() if self.cfg.lpips else None
         m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.views.test_ids],
                            self.images(self.test, self.views.test_ids), self.background, lpips)
-        self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "disabled",
+        self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "LPIPS disabled in the config",
                       "test_views": len(self.views.test_ids), "per_view_psnr": m.psnr,
                       "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.gaussians),
                       "iterations": self.trainer.step}

@@ -27,7 +27,7 @@ JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol"}
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips"}
-NOT_HASHED = ("execution", "scene_path", "sweep")
+NOT_HASHED = ("execution", "scene_path", "sweep", "index")
 
 
 class ConfigError(ValueError):
@@ -114,6 +114,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
                                 "retries": int(job_cfg["retries"]),
                                 "job_dir": str(output_dir / "jobs" / job["config_hash"])}
             validate_job(job)
+            job["index"] = len(jobs)  # the order the config lists things in (tables keep it)
             jobs.append(job)
     return jobs
 

@@ -23,7 +23,8 @@ RECORDS = "records.parquet"
 
 
 def identity(job: dict, outcome: dict, run_id: str | None) -> dict:
-    return {"sweep": job["sweep"], "config_hash": job["config_hash"], "run_id": run_id,
+    return {"sweep": job["sweep"], "job_index": job.get("index"), "config_hash": job["config_hash"],
+            "run_id": run_id,
             "status": outcome["status"], "job_kind": job["kind"], "dataset": job["dataset"],
             "scene": job["scene"], "method": job["method"], "strategy": job["strategy"],
             "protocol": job["protocol"]["kind"], "seed": job["seed"], "setting": job["setting"],

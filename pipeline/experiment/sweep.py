@@ -41,14 +41,14 @@ class Progress:
     def __init__(self, name: str, total: int, slots: int):
         self.name, self.total, self.slots = name, total, max(1, slots)
         self.done = self.failed = 0
-        self.start = time.perf_counter()
+        self.job_seconds: list[float] = []
 
     def update(self, job: dict, outcome: dict) -> None:
         self.done += 1
         self.failed += outcome["status"] != "FINISHED"
         left = self.total - self.done
-        elapsed = time.perf_counter() - self.start
-        eta = elapsed / self.done * left
+        self.job_seconds.append(outcome.get("seconds") or 0.0)
+        eta = sum(self.job_seconds) / len(self.job_seconds) * left / self.slots  # jobs alike, slots full
         running = min(left, self.slots)
         print(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
               f"ETA {eta / 60:.1f} min | {job['method']} on {job['scene']} (seed {job['seed']}"

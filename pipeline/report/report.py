@@ -28,7 +28,14 @@ def load_records(source: str | Path) -> pd.DataFrame:
     frame = pd.read_parquet(path)
     if frame.empty or "kind" not in frame:
         raise ValueError(f"{path}: the records file has no rows")
-    return frame
+    return in_config_order(frame)
+
+
+def in_config_order(frame: pd.DataFrame) -> pd.DataFrame:
+    """Rows in the order the sweep config lists jobs (not the order they finished in)."""
+    if "job_index" not in frame:
+        return frame
+    return frame.sort_values("job_index", kind="stable").reset_index(drop=True)
 
 
 def _finished(frame: pd.DataFrame, kind: str, job_kind: str) -> pd.DataFrame:
@@ -112,7 +119,7 @@ def frame_to_markdown(frame: pd.DataFrame) -> str:
 def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None) -> dict:
     """Write report.md, tables (.md, .tex), figures/ and runs.csv into ``out``; returns a summary."""
     sweep_dir = Path(source) if Path(source).is_dir() else None
-    frame = load_records(source) if frame is None else frame
+    frame = load_records(source) if frame is None else in_config_order(frame)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     title = str(frame["sweep"].iloc[0])

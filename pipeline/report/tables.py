@@ -79,7 +79,7 @@ def build_table(final: pd.DataFrame, title: str, row_key: str, group_key: str | 
     notes = []
     if "lpips" in metrics and not any(c[1] == "lpips" for (_, c) in cells):
         status = final["lpips_status"].dropna().unique() if "lpips_status" in final else []
-        notes.append("LPIPS unavailable" + (f": {status[0]}" if len(status) else ""))
+        notes.append(str(status[0]) if len(status) else "LPIPS unavailable")
     return Table(title, row_key, rows, columns, cells, notes)
 
 
