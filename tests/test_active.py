@@ -3,7 +3,6 @@
 import json
 
 import pytest
-import torch
 
 from pipeline.active import run_episode, tiny_episode
 from pipeline.active.uncertainty import UncertaintyConfig, run_uncertainty_experiment
