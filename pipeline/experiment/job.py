@@ -43,8 +43,10 @@ def png_bytes(image: torch.Tensor) -> bytes:
 
 
 def colormap(values: torch.Tensor) -> torch.Tensor:
-    """[H, W] non-negative -> [H, W, 3] (black -> red -> yellow -> white), scaled to the max."""
-    v = (values / values.max().clamp_min(1e-12)).clamp(0, 1)
+    """[H, W] non-negative -> [H, W, 3] (black -> red -> yellow -> white), scaled to the 99th
+    percentile so a few extreme pixels do not hide the rest."""
+    top = torch.quantile(values.flatten().double(), 0.99).to(values.dtype)
+    v = (values / top.clamp_min(1e-12)).clamp(0, 1)
     return torch.stack([(3 * v).clamp(0, 1), (3 * v - 1).clamp(0, 1), (3 * v - 2).clamp(0, 1)], -1)
 
 
