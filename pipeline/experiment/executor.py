@@ -51,7 +51,9 @@ class RayExecutor:
         if self.address:
             ray.init(address=self.address, include_dashboard=False, log_to_driver=False)
         else:
-            ray.init(num_cpus=self.num_cpus or os.cpu_count(), include_dashboard=False, log_to_driver=False)
+            # address="local": always a fresh local instance, never a stale cluster address file
+            ray.init(address="local", num_cpus=self.num_cpus or os.cpu_count(), include_dashboard=False,
+                     log_to_driver=False)
         return ray, True
 
     def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone) -> None:
