@@ -1,4 +1,5 @@
 import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -19,3 +20,10 @@ def shared_scene(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"staged data not found at {path} (set GOPRE_SHARED_DATA or place ../shared/data)")
     return path
+
+
+def free_port() -> int:
+    """A TCP port nobody listens on right now (for servers the tests start)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

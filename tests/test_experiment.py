@@ -3,7 +3,6 @@ resume, retries and failures."""
 
 import glob
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -15,6 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+from tests.conftest import free_port
 from pipeline.experiment.app import CONF_DIR
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.records import RecordsFile, records_from_mlflow
@@ -165,12 +165,6 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
     assert "traceback" in (out / "jobs" / hash_ / "artifacts" / "traceback.txt").read_text().lower()
     log = (out / "jobs" / hash_ / "log.txt").read_text()
     assert "attempt 1/2 failed" in log and "attempt 2/2 failed" in log
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):

@@ -81,6 +81,15 @@ def uniform_initial(cameras: Cameras, ids: list[int], count: int, up: torch.Tens
     return chosen
 
 
+def resolved_manifold(data: dict, scene: Scene, up: torch.Tensor):
+    """A manifold from its dict, a sector's up axis defaulting to the scene's, resolved on the
+    scene's cameras."""
+    manifold = manifold_from_dict(data)
+    if isinstance(manifold, SectorManifold) and manifold.up is None:
+        manifold.up = up.tolist()
+    return manifold.resolve(scene.all_cameras())
+
+
 def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
     blender = scene.format == "blender"
     real_default = not blender and cfg.kind != "sparse"
@@ -100,10 +109,7 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
     up = scene_up(scene, scene.all_cameras())
     probe_pool = pool_all
     if cfg.kind == "goal":
-        manifold = manifold_from_dict(cfg.manifold)
-        if isinstance(manifold, SectorManifold) and manifold.up is None:
-            manifold.up = up.tolist()
-        manifold = manifold.resolve(scene.all_cameras())
+        manifold = resolved_manifold(cfg.manifold, scene, up)
         if blender:
             test_cams = scene.split("test").cameras
             test_all = member_ids(manifold, test_cams[test_all], test_all)
@@ -119,10 +125,7 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
         if not probe_pool:
             raise ValueError(f"protocol 'goal': the target manifold {cfg.manifold} holds no pool view to probe")
     if cfg.probe_manifold is not None:
-        probe_manifold = manifold_from_dict(cfg.probe_manifold)
-        if isinstance(probe_manifold, SectorManifold) and probe_manifold.up is None:
-            probe_manifold.up = up.tolist()
-        probe_manifold = probe_manifold.resolve(scene.all_cameras())
+        probe_manifold = resolved_manifold(cfg.probe_manifold, scene, up)
         probe_pool = member_ids(probe_manifold, pool_cams[probe_pool], probe_pool)
         if not probe_pool:
             raise ValueError(f"protocol: probe_manifold {cfg.probe_manifold} holds no pool view")

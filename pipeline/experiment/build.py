@@ -34,6 +34,12 @@ class ConfigError(ValueError):
     """A sweep config that cannot run; the message names the key."""
 
 
+def check_keys(section: str, data: dict, allowed: set[str]) -> None:
+    unknown = set(data) - allowed
+    if unknown:
+        raise ConfigError(f"{section}: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+
+
 def config_hash(job: dict) -> str:
     """Stable hash of what a job computes (no paths, no execution settings)."""
     core = {k: v for k, v in job.items() if k not in NOT_HASHED}
@@ -93,9 +99,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
     output_dir = Path(str(cfg.output_dir))
     for (dname, dset), (mname, method), seed, axes in itertools.product(
             datasets.items(), methods.items(), list(cfg.seeds), _axes(cfg)):
-        unknown = set(method) - METHOD_KEYS
-        if unknown:
-            raise ConfigError(f"method.{mname}: unknown keys {sorted(unknown)}; allowed {sorted(METHOD_KEYS)}")
+        check_keys(f"method.{mname}", method, METHOD_KEYS)
         for scene in dset["scenes"]:
             job = {"sweep": str(cfg.name), "kind": job_cfg["kind"], "dataset": dname,
                    "format": dset["format"], "scene": scene,
@@ -122,9 +126,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
 def episode_config(job: dict) -> EpisodeConfig:
     """The core's plain dataclass for a job (the core never sees a DictConfig)."""
     splat = dict(job["splat"])
-    unknown = set(splat) - SPLAT_KEYS
-    if unknown:
-        raise ConfigError(f"splat: unknown keys {sorted(unknown)}; allowed {sorted(SPLAT_KEYS)}")
+    check_keys("splat", splat, SPLAT_KEYS)
     try:
         base = episode_preset(splat["preset"])
         fit = base.fit
@@ -150,10 +152,7 @@ def episode_config(job: dict) -> EpisodeConfig:
 
 
 def _protocol(data: dict) -> ProtocolConfig:
-    allowed = {f.name for f in fields(ProtocolConfig)}
-    unknown = set(data) - allowed
-    if unknown:
-        raise ConfigError(f"protocol: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+    check_keys("protocol", data, {f.name for f in fields(ProtocolConfig)})
     try:
         return ProtocolConfig(**data)
     except ValueError as err:
@@ -162,10 +161,7 @@ def _protocol(data: dict) -> ProtocolConfig:
 
 def uncertainty_config(job: dict) -> UncertaintyConfig:
     data = dict(job["uncertainty"] or {})
-    allowed = {f.name for f in fields(UncertaintyConfig)}
-    unknown = set(data) - allowed
-    if unknown:
-        raise ConfigError(f"uncertainty: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
+    check_keys("uncertainty", data, {f.name for f in fields(UncertaintyConfig)})
     if "methods" in data:
         data["methods"] = tuple(data["methods"])
     return UncertaintyConfig(**data, seed=job["seed"])
