@@ -50,12 +50,15 @@ class ActiveNeRFStrategy:
             opt.step()
         return log_var.detach()
 
+    def rendered_variance(self, ctx: SelectionContext, cameras) -> torch.Tensor:
+        """Prior rendered variance V_p of each view, [C, H, W] float64 (attribute fitted first)."""
+        variance = torch.exp(self.fit_variance(ctx))
+        v = render_feature(ctx.gaussians, cameras, variance, ctx.background, ctx.settings).double()
+        return v + self.min_variance
+
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         def run(order):
-            variance = torch.exp(self.fit_variance(ctx))
-            pool = ctx.candidates[order]
-            v = render_feature(ctx.gaussians, pool, variance, ctx.background, ctx.settings).double()
-            v = v + self.min_variance
+            v = self.rendered_variance(ctx, ctx.candidates[order])
             scores = (v - 1.0 / (1.0 / v + 1.0 / self.tau ** 2)).sum((1, 2))
             return torch.argsort(-scores, stable=True)[:count].tolist(), scores
         return timed_selection(ctx, run)

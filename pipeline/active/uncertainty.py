@@ -21,7 +21,6 @@ import torch
 from pipeline.acquisition import SelectionContext
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.acquisition.base import seeded_subset
-from pipeline.acquisition.rendered_stats import render_feature
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import initial_gaussians, uniform_subset
 from pipeline.cameras import Cameras
@@ -31,7 +30,7 @@ from pipeline.eval.sparsification import DECILES, ause, oracle_curve, random_cur
 from pipeline.fisher.exact import FisherSpec, predictive_variance_maps, view_fisher
 from pipeline.fisher.posterior import posterior_variance, predictive_entropy
 from pipeline.fit.trainer import Trainer
-from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat import Gaussians, render
 
 METHODS = ("gopre", "fisherrf", "activenerf")
 
@@ -65,12 +64,9 @@ def fisher_uncertainties(gaussians: Gaussians, train: Cameras, test: Cameras, ba
 
 def activenerf_uncertainties(gaussians: Gaussians, train: Cameras, train_images: torch.Tensor,
                              test: Cameras, background: torch.Tensor, seed: int) -> np.ndarray:
-    strategy = ActiveNeRFStrategy()
     ctx = SelectionContext(gaussians, test, list(range(len(test))), train, background,
                            torch.Generator().manual_seed(seed), taken_images=train_images)
-    variance = torch.exp(strategy.fit_variance(ctx))
-    v = render_feature(gaussians, test, variance, background, RenderSettings()).double() + strategy.min_variance
-    return v.sum((1, 2)).numpy()
+    return ActiveNeRFStrategy().rendered_variance(ctx, test).sum((1, 2)).numpy()
 
 
 def run_uncertainty_experiment(scene: Scene, episode: EpisodeConfig, cfg: UncertaintyConfig) -> dict:
@@ -83,16 +79,16 @@ def run_uncertainty_experiment(scene: Scene, episode: EpisodeConfig, cfg: Uncert
     test_ids = uniform_subset([i for i in range(len(test))
                                if test is not pool or i not in set(train_ids)], cfg.test_views)
     fit = episode.fit.scaled_to(cfg.iterations).with_changes(seed=cfg.seed)
-    trainer = Trainer(initial_gaussians(scene, episode.with_changes(fit=fit)), pool.cameras[train_ids],
-                      pool.images.stack(train_ids), fit, scene.background)
+    train_cams, train_images = pool.cameras[train_ids], pool.images.stack(train_ids)
+    trainer = Trainer(initial_gaussians(scene, episode.with_changes(fit=fit)), train_cams, train_images,
+                      fit, scene.background)
     trainer.train(fit.iterations)
     g = trainer.gaussians
     test_cams, test_images = test.cameras[test_ids], test.images.stack(test_ids)
     psnr = np.array(evaluate_views(g, test_cams, test_images, scene.background, ssim=False).psnr)
-    scores, s = fisher_uncertainties(g, pool.cameras[train_ids], test_cams, scene.background, cfg)
+    scores, s = fisher_uncertainties(g, train_cams, test_cams, scene.background, cfg)
     if "activenerf" in cfg.methods:
-        scores["activenerf"] = activenerf_uncertainties(g, pool.cameras[train_ids],
-                                                        pool.images.stack(train_ids), test_cams,
+        scores["activenerf"] = activenerf_uncertainties(g, train_cams, train_images, test_cams,
                                                         scene.background, cfg.seed)
     scores = {k: v for k, v in scores.items() if k in cfg.methods}
     oracle = oracle_curve(psnr)
