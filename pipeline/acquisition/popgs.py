@@ -42,28 +42,29 @@ class PopGSStrategy:
         return greedy_pick(cands, h, lambda h_, f: torch.log1p(f / (h_ + self.lam)).sum(-1), count, True)
 
     def _blocks(self, ctx, cameras):
-        for A, G, _ in view_factors(ctx.gaussians, cameras, ctx.background, self.block_spec, ctx.settings):
-            yield A, G
+        """Per view (seen [M], A [M, 9, P], G [M, 9, 9]) for the Gaussians the view reaches."""
+        for f in view_factors(ctx.gaussians, cameras, ctx.background, self.block_spec, ctx.settings):
+            yield f.seen, f.jacobian.dense().double(), f.feature_fisher
 
     def _block(self, ctx, order, count):
         n = len(ctx.gaussians)
         p = sum(v[0].numel() for k, v in ctx.gaussians.params().items() if k in self.block_spec.groups)
         eye = torch.eye(p, dtype=torch.float64)
         h = torch.zeros(n, p, p, dtype=torch.float64)
-        for A, G in self._blocks(ctx, ctx.taken):
-            h += A.transpose(1, 2) @ G @ A
+        for seen, A, G in self._blocks(ctx, ctx.taken):
+            h[seen] += A.transpose(1, 2) @ G @ A
         pool = ctx.candidates[order]
         picks, first = [], None
         for _ in range(min(count, len(order))):
             sigma = torch.linalg.inv(h + self.lam * eye)  # [N, P, P]
             scores = torch.empty(len(order), dtype=torch.float64)
-            for i, (A, G) in enumerate(self._blocks(ctx, pool)):
-                m = A @ sigma @ A.transpose(1, 2)  # [N, 9, 9]
+            for i, (seen, A, G) in enumerate(self._blocks(ctx, pool)):
+                m = A @ sigma[seen] @ A.transpose(1, 2)  # [M, 9, 9]; unseen Gaussians add log det I = 0
                 scores[i] = torch.linalg.slogdet(torch.eye(9, dtype=torch.float64) + G @ m)[1].sum()
             first = scores if first is None else first
             scores[picks] = -torch.inf
             best = int(torch.argmax(scores))
             picks.append(best)
-            A, G = next(self._blocks(ctx, pool[best]))
-            h = h + A.transpose(1, 2) @ G @ A
+            seen, A, G = next(self._blocks(ctx, pool[best]))
+            h[seen] += A.transpose(1, 2) @ G @ A
         return picks, first

@@ -13,14 +13,16 @@ G is accumulated in float64.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
-from pipeline.fisher.features import PARAM_GROUPS, feature_jacobian
+from pipeline.fisher.features import PARAM_GROUPS, FeatureJacobian, feature_jacobian
 from pipeline.splat import Gaussians, RenderSettings
+from pipeline.splat.project import project
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
                                       local_means, outside_image, tile_monomials, untile)
 
@@ -64,6 +66,41 @@ def _exponent_basis(conics: Tensor, local_means: Tensor, opacities: Tensor) -> T
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
+def _centred_basis(conics: Tensor, opacities: Tensor) -> Tensor:
+    """C [N, 6, 6]: h = C psi(d) per Gaussian, where psi(d) = (dx^2, dx dy, dy^2, dx, dy, 1) of
+    d = pixel - mean2d (``_exponent_basis`` at a zero offset)."""
+    return _exponent_basis(conics, conics.new_zeros(conics.shape[0], 2), opacities)
+
+
+def centre_moments(moments: Tensor, offsets: Tensor, exponents: tuple) -> Tensor:
+    """Shift pixel moments to per-row origins by the binomial theorem (exact).
+
+    moments [E, I, ...]: row e = (a, b) holds sum_p w_p x_p^a y_p^b; ``exponents`` lists the E
+    pairs and contains every lower pair of each (a total-degree set); offsets [I, 2].
+    Returns [E, I, ...] with row (a, b) = sum_p w_p (x_p - ox)^a (y_p - oy)^b.
+    Done as a shift along x then along y: one fused multiply-add on an [I, ...] row per term.
+    """
+    row = {e: r for r, e in enumerate(exponents)}
+    top = max(max(e) for e in exponents)
+    extra = (1,) * (moments.dim() - 2)
+    shifted = moments
+    for axis in (0, 1):
+        neg = (-offsets[:, axis]).reshape(-1, *extra).to(moments.dtype)
+        powers = [None, neg]
+        for _ in range(2, top + 1):
+            powers.append(powers[-1] * neg)
+        out = torch.empty_like(shifted)
+        for r, e in enumerate(exponents):
+            acc = out[r]
+            acc.copy_(shifted[r])
+            for lower in range(e[axis]):
+                src = (lower, e[1]) if axis == 0 else (e[0], lower)
+                acc.addcmul_(powers[e[axis] - lower], shifted[row[src]],
+                             value=math.comb(e[axis], lower))
+        shifted = out
+    return shifted
+
+
 @dataclass
 class ChunkDerivatives:
     """Per-chunk pieces of d I_pc / d features for the listed Gaussians of active tiles.
@@ -94,10 +131,15 @@ class ViewWalk:
         self.acc, self.final, self.records = composite_forward(psi, self.colors, self.bins, self.phi,
                                                                done, settings.chunk)
         self.mono, self.pair = _moment_tables(ts, dtype, device)
-        g = self.bins.gauss_ids
-        self.basis = _exponent_basis(proj.conics[g], local_means(self.bins, proj.means2d),
-                                     proj.opacities[g])
+        self.offsets = local_means(self.bins, proj.means2d)  # [I, 2] mean2d - tile centre
+        self.conics, self.opacities = proj.conics, proj.opacities
         self.behind_bg = self.final[..., None] * background.to(dtype)  # [T, P, 3]
+
+    @property
+    def basis(self) -> Tensor:
+        """B [I, 6, 6] per intersection: h = B phi in tile-local coordinates."""
+        g = self.bins.gauss_ids
+        return _exponent_basis(self.conics[g], self.offsets, self.opacities[g])
 
     def chunks(self):
         for rec in self.records:
@@ -113,40 +155,44 @@ class ViewWalk:
             yield ChunkDerivatives(a, rec.pos, rec.valid, s, w)
 
 
-def feature_fisher(walk: ViewWalk, n: int) -> Tensor:
-    """G [N, 9, 9] float64: sum over pixels and channels of d I / d features outer products.
+def feature_fisher(walk: ViewWalk) -> tuple[Tensor, Tensor]:
+    """(seen [M], G [M, 9, 9] float64): the Gaussians the walk reached (sorted ids) and for each
+    the sum over pixels and channels of d I / d features outer products (every other Gaussian
+    has G = 0).
 
-    Pixel moments are stored per intersection (each lies in exactly one chunk), then mapped to
-    feature space with the exponent basis B in one batched step and summed per Gaussian.
+    Per walked intersection (early termination leaves most listed ones unwalked), tile-local
+    pixel moments are shifted to the Gaussian's mean (``centre_moments``), summed per Gaussian,
+    and only then mapped to feature space with the Gaussian's own basis C (h = C psi(d)).
     """
-    num, dtype, device = walk.bins.gauss_ids.numel(), walk.phi.dtype, walk.phi.device
-    m4 = torch.zeros(num, walk.mono.shape[1], dtype=dtype, device=device)
-    m2 = torch.zeros(num, 6, 3, dtype=dtype, device=device)
-    w2 = torch.zeros(num, dtype=dtype, device=device)
+    device, f64 = walk.phi.device, torch.float64
+    m4, m2, w2, walked = [], [], [], []
     for ch in walk.chunks():
         keep = ch.valid.reshape(-1)
-        pos = ch.pos.reshape(-1)[keep]
         s, w = ch.s, ch.w
         ta, pix, k = w.shape
         # left-multiplying by the small [15, P] / [6, P] tables keeps the big tensors in place
         sq = torch.matmul(walk.mono.T, s.square().sum(-1))  # [Ta, 15, K]
-        m4[pos] = sq.transpose(1, 2).reshape(-1, m4.shape[1])[keep]
+        m4.append(sq.transpose(1, 2).reshape(-1, sq.shape[1])[keep])
         sw = torch.matmul(walk.phi.T, (s * w[..., None]).reshape(ta, pix, k * 3))  # [Ta, 6, K*3]
-        m2[pos] = sw.reshape(ta, 6, k, 3).permute(0, 2, 1, 3).reshape(-1, 6, 3)[keep]
-        w2[pos] = w.square().sum(1).reshape(-1)[keep]
-    basis = walk.basis
-    geo = (basis @ m4[:, walk.pair] @ basis.transpose(-1, -2)).double()  # [I, 6, 6]
-    cross = (basis @ m2).double()  # [I, 6, 3]
-    ids = walk.bins.gauss_ids
-    G = torch.zeros(n, 9, 9, dtype=torch.float64, device=device)
-    geo_sum = torch.zeros(n, 6, 6, dtype=torch.float64, device=device).index_add_(0, ids, geo)
-    cross_sum = torch.zeros(n, 6, 3, dtype=torch.float64, device=device).index_add_(0, ids, cross)
-    w2_sum = torch.zeros(n, dtype=torch.float64, device=device).index_add_(0, ids, w2.double())
-    G[:, :6, :6] = geo_sum
-    G[:, :6, 6:] = cross_sum
-    G[:, 6:, :6] = cross_sum.transpose(1, 2)
+        m2.append(sw.reshape(ta, 6, k, 3).permute(0, 2, 1, 3).reshape(-1, 6, 3)[keep])
+        w2.append(w.square().sum(1).reshape(-1)[keep])
+        walked.append(ch.pos.reshape(-1)[keep])
+    walked = torch.cat(walked)  # [W] positions into the intersection arrays
+    seen, ids = torch.unique(walk.bins.gauss_ids[walked], return_inverse=True)
+    n, offsets = seen.numel(), walk.offsets[walked].double()
+    mu4 = centre_moments(torch.cat(m4).T.double(), offsets, MOMENT_EXPONENTS)  # [15, W]
+    mu2 = centre_moments(torch.cat(m2).permute(1, 0, 2).double(), offsets, PHI_EXPONENTS)  # [6, W, 3]
+    mu4_sum = torch.zeros(n, mu4.shape[0], dtype=f64, device=device).index_add_(0, ids, mu4.T)
+    mu2_sum = torch.zeros(n, 6, 3, dtype=f64, device=device).index_add_(0, ids, mu2.transpose(0, 1))
+    w2_sum = torch.zeros(n, dtype=f64, device=device).index_add_(0, ids, torch.cat(w2).double())
+    basis = _centred_basis(walk.conics[seen].double(), walk.opacities[seen].double())  # [M, 6, 6]
+    G = torch.zeros(n, 9, 9, dtype=f64, device=device)
+    G[:, :6, :6] = basis @ mu4_sum[:, walk.pair] @ basis.transpose(1, 2)
+    cross = basis @ mu2_sum
+    G[:, :6, 6:] = cross
+    G[:, 6:, :6] = cross.transpose(1, 2)
     G[:, 6:, 6:] = torch.diag_embed(w2_sum[:, None].expand(n, 3))
-    return G
+    return seen, G
 
 
 def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
@@ -177,9 +223,38 @@ def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
     return untile(img, walk.bins, walk.width, walk.height)
 
 
+@dataclass
+class ViewFactors:
+    """One view's Fisher factors for the M Gaussians its walk reached (all others have F = 0).
+
+    seen [M] sorted Gaussian ids; jacobian: ``FeatureJacobian`` of those M Gaussians;
+    feature_fisher [M, 9, 9] float64 (G); walk: the view's ``ViewWalk``.
+    """
+
+    seen: Tensor
+    jacobian: FeatureJacobian
+    feature_fisher: Tensor
+    walk: ViewWalk
+
+    def fisher_diagonal(self, n: int) -> Tensor:
+        """diag(A^T G A) for all n Gaussians, [N, P] float64."""
+        width = sum(w for _, w in self.jacobian.layout)
+        out = self.feature_fisher.new_zeros(n, width)
+        out[self.seen] = self.jacobian.fisher_diagonal(self.feature_fisher)
+        return out
+
+    def feature_covariance(self, posterior_var: Tensor) -> Tensor:
+        """A diag(S) A^T [N, 9, 9] float64 for S [N, P] (zero for Gaussians not reached)."""
+        A = self.jacobian.dense().double()
+        cov = self.feature_fisher.new_zeros(posterior_var.shape[0], 9, 9)
+        cov[self.seen] = torch.einsum("nip,np,njp->nij", A, posterior_var[self.seen].double(), A)
+        return cov
+
+
 def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
                  spec: "FisherSpec" = None, settings: RenderSettings = RenderSettings()):
-    """Yield per view (A [N, 9, P], G [N, 9, 9] float64, ViewWalk): the Fisher's factors."""
+    """Yield one ``ViewFactors`` per camera: walk first, then the Jacobian of only the Gaussians
+    the walk reached (occluded and off-screen ones have zero Fisher)."""
     spec = spec or FisherSpec()
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
@@ -187,10 +262,14 @@ def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     bg = gaussians.means.new_zeros(3) if background is None else background
     for i in range(len(cams)):
-        proj, jac = feature_jacobian(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height,
-                                     spec.groups, spec.sh_degree, settings.near)
+        view = (cams.viewmats[i], cams.Ks[i], cams.width, cams.height)
+        with torch.no_grad():
+            proj = project(gaussians.detach(), *view, spec.sh_degree, settings.near)
         walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
-        yield jac.double(), feature_fisher(walk, len(gaussians)), walk
+        seen, G = feature_fisher(walk)
+        _, jac = feature_jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree,
+                                  settings.near)
+        yield ViewFactors(seen, jac, G, walk)
 
 
 def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
@@ -201,16 +280,14 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
     P = the selected raw parameters per Gaussian in ``param_layout`` order. Gaussians that no
     pixel sees get exactly zero.
     """
-    return torch.stack([torch.einsum("nip,nij,njp->np", A, G, A)
-                        for A, G, _ in view_factors(gaussians, cameras, background, spec, settings)])
+    n = len(gaussians)
+    return torch.stack([f.fisher_diagonal(n) for f in
+                        view_factors(gaussians, cameras, background, spec, settings)])
 
 
 def predictive_variance_maps(gaussians: Gaussians, cameras: Cameras, posterior_var: Tensor,
                              background: Tensor | None = None, spec: FisherSpec = FisherSpec(),
                              settings: RenderSettings = RenderSettings()) -> Tensor:
     """Per-pixel predictive variance maps [C, H, W, 3] for a diagonal posterior S [N, P]."""
-    maps = []
-    for A, _, walk in view_factors(gaussians, cameras, background, spec, settings):
-        cov = torch.einsum("nip,np,njp->nij", A, posterior_var.double(), A)
-        maps.append(variance_map(walk, cov))
-    return torch.stack(maps)
+    return torch.stack([variance_map(f.walk, f.feature_covariance(posterior_var)) for f in
+                        view_factors(gaussians, cameras, background, spec, settings)])

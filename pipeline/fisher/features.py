@@ -4,18 +4,30 @@ A raw parameter of Gaussian g reaches the rendered image only through g's own 9 
 (mean2d u, v; conic a, b, c; opacity; colour r, g, b), so the per-view Fisher of the raw
 parameters is diag(A^T G A) per Gaussian with A = d features / d raw [9, P] (this module) and G
 the 9x9 feature-space Fisher (``exact.py``).
+
+A is sparse and kept in its structure (``FeatureJacobian``): the geometric parameters (means,
+log-scales, quaternions) reach u, v, the conic and (means only, via the view direction) the
+colour, which one batched backward of 8 rows gives; the opacity row is sigmoid'; a colour
+channel is linear in its SH coefficients with the SH basis at the view direction as slope (zero
+where the colour is clamped at 0). Only ``dense()`` builds the full [N, 9, P] matrix.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from pipeline.splat import Gaussians
-from pipeline.splat.project import Projection, project
+from pipeline.splat.project import Projection, project, view_directions
+from pipeline.splat.sh import sh_basis
 
 FEATURES = ("u", "v", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b")
 PARAM_GROUPS = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
+GEOMETRIC = ("means", "log_scales", "quats")
+GEOMETRIC_ROWS = (0, 1, 2, 3, 4, 6, 7, 8)  # feature rows a geometric parameter can reach
+OPACITY_ROW, COLOUR_ROWS = 5, slice(6, 9)
 
 
 def param_layout(gaussians: Gaussians, groups: tuple[str, ...]) -> list[tuple[str, int]]:
@@ -24,27 +36,99 @@ def param_layout(gaussians: Gaussians, groups: tuple[str, ...]) -> list[tuple[st
     if unknown:
         raise ValueError(f"unknown parameter groups {unknown}; choose from {PARAM_GROUPS}")
     params = gaussians.params()
-    return [(g, params[g][0].numel() if len(gaussians) else 0) for g in PARAM_GROUPS if g in groups]
+    return [(g, params[g].shape[1:].numel()) for g in PARAM_GROUPS if g in groups]
+
+
+@dataclass
+class FeatureJacobian:
+    """A = d features / d raw parameters of one view, in its block structure (N Gaussians).
+
+    layout: [(group, width)] of the selected groups (``param_layout``);
+    geometry [N, 8, Q]: rows ``GEOMETRIC_ROWS`` w.r.t. the selected geometric groups in layout
+    order (Q = their total width, 0 if none); opacity_slope [N] = d opacity / d logit;
+    sh_slope [N, K, 3] = d colour_c / d sh_kc (the SH basis, zero beyond the active degree and
+    where the colour is clamped).
+    """
+
+    layout: list[tuple[str, int]]
+    geometry: Tensor
+    opacity_slope: Tensor
+    sh_slope: Tensor
+
+    def _blocks(self):
+        """Yield (group, column slice of the flattened layout)."""
+        start = 0
+        for group, width in self.layout:
+            yield group, slice(start, start + width)
+            start += width
+
+    def fisher_diagonal(self, feature_fisher: Tensor) -> Tensor:
+        """diag(A^T G A) [N, P] float64 for G [N, 9, 9] float64, block by block."""
+        G = feature_fisher
+        n = G.shape[0]
+        colour = torch.diagonal(G[:, COLOUR_ROWS, COLOUR_ROWS], dim1=1, dim2=2)  # [N, 3]
+        rows = list(GEOMETRIC_ROWS)
+        geo = self.geometry.to(G.dtype)
+        geo_f = ((G[:, rows][:, :, rows] @ geo) * geo).sum(1) if geo.shape[2] else None  # [N, Q]
+        sh_f = self.sh_slope.to(G.dtype).square() * colour[:, None, :]  # [N, K, 3]
+        out, q = [], 0
+        for group, cols in self._blocks():
+            if group in GEOMETRIC:
+                out.append(geo_f[:, q:q + cols.stop - cols.start])
+                q += cols.stop - cols.start
+            elif group == "logit_opacities":
+                out.append((G[:, OPACITY_ROW, OPACITY_ROW] * self.opacity_slope.to(G.dtype) ** 2)[:, None])
+            elif group == "sh0":
+                out.append(sh_f[:, 0])
+            else:
+                out.append(sh_f[:, 1:].reshape(n, -1))
+        return torch.cat(out, dim=1)
+
+    def dense(self) -> Tensor:
+        """A [N, 9, P] (geometry dtype)."""
+        n = self.geometry.shape[0]
+        width = sum(w for _, w in self.layout)
+        A = self.geometry.new_zeros(n, 9, width)
+        q = 0
+        for group, cols in self._blocks():
+            if group in GEOMETRIC:
+                A[:, list(GEOMETRIC_ROWS), cols] = self.geometry[:, :, q:q + cols.stop - cols.start]
+                q += cols.stop - cols.start
+            elif group == "logit_opacities":
+                A[:, OPACITY_ROW, cols.start] = self.opacity_slope
+            else:
+                slope = self.sh_slope[:, :1] if group == "sh0" else self.sh_slope[:, 1:]  # [N, k, 3]
+                k = slope.shape[1]
+                for c in range(3):  # column k' * 3 + c is coefficient k' of channel c
+                    A[:, 6 + c, cols.start + c:cols.stop:3] = slope[:, :, c]
+                assert k * 3 == cols.stop - cols.start
+        return A
 
 
 def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
                      groups: tuple[str, ...], sh_degree: int | None = None,
-                     near: float = 0.01) -> tuple[Projection, Tensor]:
-    """Project and return (projection, A [N, 9, P]) with P the selected raw parameters per Gaussian.
-
-    Each feature row depends only on its own Gaussian, so one backward pass per feature (9 in
-    all, batched with vmap) gives A for every Gaussian at once.
-    """
-    leaves = {k: v.detach().clone().requires_grad_(True) for k, v in gaussians.params().items()}
+                     near: float = 0.01) -> tuple[Projection, FeatureJacobian]:
+    """Project and return (projection, A) for the selected raw parameter groups."""
+    layout = param_layout(gaussians, groups)
+    geometric = [g for g, _ in layout if g in GEOMETRIC]
+    params = {k: v.detach() for k, v in gaussians.params().items()}
+    leaves = {g: params[g].clone().requires_grad_(True) for g in geometric}
     with torch.enable_grad():
-        proj = project(Gaussians(**leaves), viewmat, K, width, height, sh_degree, near)
-        feats = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None], proj.colors], dim=1)
-        wanted = [leaves[g] for g, _ in param_layout(gaussians, groups)]
-        selectors = torch.eye(feats.shape[1], dtype=feats.dtype, device=feats.device)
-        selectors = selectors[:, None, :].expand(-1, feats.shape[0], -1)  # [9, N, 9]
-        grads = torch.autograd.grad(feats, wanted, selectors, is_grads_batched=True,
-                                    allow_unused=True, materialize_grads=True)
-        rows = torch.cat([gr.reshape(gr.shape[0], gr.shape[1], -1) for gr in grads], dim=2)
+        proj = project(Gaussians(**{**params, **leaves}), viewmat, K, width, height, sh_degree, near)
+        n = len(gaussians)
+        if geometric and n:
+            feats = torch.cat([proj.means2d, proj.conics, proj.colors], dim=1)  # [N, 8]
+            selectors = torch.eye(8, dtype=feats.dtype, device=feats.device)[:, None, :].expand(-1, n, -1)
+            grads = torch.autograd.grad(feats, [leaves[g] for g in geometric], selectors,
+                                        is_grads_batched=True, allow_unused=True, materialize_grads=True)
+            geometry = torch.cat([gr.reshape(8, n, -1) for gr in grads], dim=2).transpose(0, 1)
+        else:
+            geometry = params["means"].new_zeros(n, 8, 0)
     detached = Projection(*(getattr(proj, f).detach() for f in
                             ("means2d", "conics", "depths", "radii", "colors", "opacities")))
-    return detached, rows.transpose(0, 1)  # [N, 9, P]
+    degree = gaussians.sh_degree if sh_degree is None else sh_degree
+    basis = torch.stack(sh_basis(degree, view_directions(params["means"], viewmat)), dim=1)  # [N, k]
+    slope = basis.new_zeros(n, gaussians.shN.shape[1] + 1, 3)
+    slope[:, :basis.shape[1]] = basis[:, :, None] * (detached.colors > 0)[:, None, :]
+    o = detached.opacities
+    return detached, FeatureJacobian(layout, geometry, o * (1 - o), slope)

@@ -36,6 +36,12 @@ class Projection:
     opacities: Tensor
 
 
+def view_directions(means: Tensor, viewmat: Tensor) -> Tensor:
+    """Unit directions camera centre -> Gaussian [N, 3] (where the SH colour is evaluated)."""
+    rot, trans = viewmat[:3, :3], viewmat[:3, 3]
+    return torch.nn.functional.normalize(means + rot.T @ trans, dim=-1)
+
+
 def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
             sh_degree: int | None = None, near: float = 0.01) -> Projection:
     """Project ``gaussians`` with world->camera ``viewmat`` [4, 4] and intrinsics ``K`` [3, 3]."""
@@ -73,7 +79,6 @@ def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height
         on_image = (u + radius > 0) & (u - radius < width) & (v + radius > 0) & (v - radius < height)
         radii = torch.where(in_front & on_image, radius, torch.zeros_like(radius)).long()
 
-    cam_center = -(rot.T @ trans)
-    dirs = torch.nn.functional.normalize(gaussians.means - cam_center, dim=-1)
+    dirs = view_directions(gaussians.means, viewmat)
     colors = torch.clamp_min(eval_sh(sh_degree, gaussians.sh, dirs) + 0.5, 0.0)
     return Projection(means2d, conics, p_cam[:, 2], radii, colors, gaussians.opacities)
