@@ -137,3 +137,54 @@ def test_predictive_entropy_parameter_form_equals_output_form_for_diagonal_fishe
     dense = 0.5 * torch.linalg.slogdet(2 * math.pi * math.e * (J @ torch.diag(s) @ J.T
                                                                  + 0.25 * torch.eye(7, dtype=F64)))[1]
     assert predictive_entropy(s, f, 7, tau=0.5).item() == pytest.approx(dense.item(), rel=1e-12)
+
+
+def test_centre_moments_equal_moments_taken_about_the_new_origin():
+    from pipeline.fisher.exact import MOMENT_EXPONENTS, PHI_EXPONENTS, centre_moments
+    gen = torch.Generator().manual_seed(11)
+    xy = torch.rand(3, 40, 2, generator=gen, dtype=F64) * 8 - 4  # 3 rows of 40 pixels
+    w = torch.rand(3, 40, 2, generator=gen, dtype=F64)  # two weight channels
+    offsets = torch.randn(3, 2, generator=gen, dtype=F64) * 5
+
+    def moments(points, exps):
+        x, y = points[..., 0], points[..., 1]
+        return torch.stack([((x ** a * y ** b)[..., None] * w).sum(1) for a, b in exps])  # [E, 3, 2]
+    for exps in (MOMENT_EXPONENTS, PHI_EXPONENTS):
+        shifted = centre_moments(moments(xy, exps), offsets, exps)
+        direct = moments(xy - offsets[:, None, :], exps)
+        assert torch.allclose(shifted, direct, rtol=1e-10, atol=1e-9)
+
+
+def test_fisher_at_a_lower_active_sh_degree_matches_autograd():
+    g = random_scene(20, seed=12, dtype=F64, sh_degree=2)
+    cams = orbit_cameras(1, 12, 11, dtype=F64, radius=2.4)
+    groups = ("means", "sh0", "shN")
+
+    def fn(means, sh0, shn):
+        h = Gaussians(**{**g.params(), "means": means, "sh0": sh0, "shN": shn})
+        return render(h, cams, BG, sh_degree=1, settings=SETTINGS).rgb.reshape(-1)
+    jac = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
+    ref = torch.cat([j.reshape(j.shape[0], 20, -1).square().sum(0) for j in jac], dim=1)
+    ours = view_fisher(g, cams, BG, FisherSpec(groups, sh_degree=1), SETTINGS)[0]
+    assert ref[:, 3 + 3 + 9:].abs().max() == 0  # degree-2 coefficients are inactive
+    assert ((ours - ref).norm() / ref.norm()).item() < 1e-10
+
+
+def test_fisher_skips_occluded_gaussians_exactly():
+    """An opaque wall in front: Gaussians behind it are never walked, and get exactly zero."""
+    from pipeline.fisher.exact import view_factors
+    g = random_scene(80, seed=13, dtype=F64, opacity_range=(0.3, 0.9))
+    cams = orbit_cameras(1, 12, 12, dtype=F64, radius=2.4)
+    eye = cams.centers[0]
+    wall = Gaussians(means=(0.5 * eye)[None].repeat(3, 1), log_scales=torch.full((3, 3), 1.0, dtype=F64),
+                     quats=torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=F64),
+                     logit_opacities=torch.full((3,), 12.0, dtype=F64),
+                     sh0=torch.zeros(3, 1, 3, dtype=F64), shN=torch.zeros(3, 3, 3, dtype=F64))
+    scene = Gaussians.cat([wall, g])
+    factors = next(view_factors(scene, cams, BG, FisherSpec(), SETTINGS))
+    assert factors.seen.numel() < len(scene)  # some Gaussians are hidden behind the wall
+    ours = view_fisher(scene, cams, BG, settings=SETTINGS)[0]
+    ref = brute_fisher(scene, cams, ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN"))
+    hidden = torch.ones(len(scene), dtype=torch.bool)
+    hidden[factors.seen] = False
+    assert (ours[hidden] == 0).all() and ((ours - ref).norm() / ref.norm()).item() < 1e-10
