@@ -93,7 +93,7 @@ def greedy_pick(candidate_fishers: Tensor, h_train: Tensor, score: Callable[[Ten
     h = h_train.clone()
     picks, first = [], None
     for _ in range(min(count, candidate_fishers.shape[0])):
-        s = score(h, candidate_fishers)
+        s = score_in_blocks(score, h, candidate_fishers)
         first = s if first is None else first
         masked = torch.where(available, s, torch.full_like(s, -torch.inf if maximize else torch.inf))
         best = int(torch.argmax(masked) if maximize else torch.argmin(masked))
@@ -101,6 +101,16 @@ def greedy_pick(candidate_fishers: Tensor, h_train: Tensor, score: Callable[[Ten
         available[best] = False
         h = h + candidate_fishers[best]
     return picks, first
+
+
+SCORE_BLOCK_ELEMENTS = 1 << 22  # candidate rows scored together: ~32 MB of float64 temporaries
+
+
+def score_in_blocks(score: Callable[[Tensor, Tensor], Tensor], h: Tensor, fishers: Tensor) -> Tensor:
+    """score(h, fishers) [M] computed a block of candidate rows at a time, so the [M, D] float64
+    temporaries of a score never exist at once (scores are row-wise independent)."""
+    rows = max(1, SCORE_BLOCK_ELEMENTS // max(1, fishers.shape[-1]))
+    return torch.cat([score(h, fishers[i:i + rows]) for i in range(0, fishers.shape[0], rows)])
 
 
 def canonical_order(ctx: SelectionContext) -> list[int]:

@@ -38,8 +38,11 @@ def trace_score(sx: Tensor, goal: Tensor, tau: float = 1.0) -> Tensor:
 
 def monte_carlo_score(sx: Tensor, probe_fishers: Tensor, tau: float = 1.0) -> Tensor:
     """Direct Monte-Carlo mean_k sum_i log1p(Sx_i F_pk,i / tau^2): sx [..., D], probes [K, D]."""
-    per_probe = torch.log1p(sx.unsqueeze(-2) * probe_fishers.double() / tau ** 2).sum(-1)
-    return per_probe.mean(-1)
+    probes = probe_fishers.double() / tau ** 2
+    total = torch.zeros(sx.shape[:-1], dtype=torch.float64, device=sx.device)
+    for probe in probes:  # one [..., D] temporary at a time, not [..., K, D]
+        total += torch.log1p(sx * probe).sum(-1)
+    return total / probes.shape[0]
 
 
 def goal_hessian(probe_fishers: Tensor) -> Tensor:
