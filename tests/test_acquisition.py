@@ -190,3 +190,17 @@ def test_scores_are_finite_with_zero_fisher_entries():
     sx = updated_variance(posterior_variance(h), f, tau=1e-4)
     for value in (gopre_score(sx, f[1]), trace_score(sx, f[1]), monte_carlo_score(sx, f)):
         assert torch.isfinite(value).all()
+
+
+@pytest.mark.parametrize("options", [{}, {"score": "mc"}, {"score": "trace"}])
+def test_scores_in_small_candidate_blocks_equal_whole_pool_scores(ctx_parts, monkeypatch, options):
+    from pipeline.acquisition import base
+    strategy = make_strategy("gopre", **options)
+    whole = strategy.select(make_ctx(ctx_parts), count=2)
+    g = ctx_parts[0]
+    d = len(g) * sum(v[0].numel() for v in g.params().values())  # Fisher entries per candidate
+    monkeypatch.setattr(base, "SCORE_BLOCK_ELEMENTS", 2 * d)  # two candidates per block
+    blocked = strategy.select(make_ctx(ctx_parts), count=2)
+    assert blocked.chosen == whole.chosen
+    for k, v in whole.scores.items():
+        assert blocked.scores[k] == pytest.approx(v, rel=1e-12)
