@@ -4,11 +4,14 @@ Sum over pixels AND channels of squared derivatives, for every selected raw para
 (rotations included). Per (pixel, Gaussian) the derivative of channel c w.r.t. the Gaussian's 9
 features is d_pc = [s_pc h_p ; w_p e_c], where s_pc = dI_pc / d(exponent), h_p = d(exponent) /
 d(mean2d, conic, opacity) and w_p = alpha T the compositing weight. h_p is a polynomial of degree
-<= 2 in tile-local pixel coordinates, h_p = B phi_p, so the pixel sums of d d^T reduce to pixel
-moments of degree <= 4, computed with one matmul per chunk:
-    G = [[B (sum_p S_p phi phi^T) B^T, B sum_p s_pc w_p phi], [., diag(sum_p w_p^2)]],
+<= 2 in the pixel's offset from the Gaussian's mean, h_p = C psi(d_p), so the pixel sums of
+d d^T reduce to pixel moments of degree <= 4:
+    G = [[C (sum_p S_p psi psi^T) C^T, C sum_p s_pc w_p psi], [., diag(sum_p w_p^2)]],
     S_p = sum_c s_pc^2.  Then F_raw = diag(A^T G A) per Gaussian (A from ``features.py``).
-G is accumulated in float64.
+The moments come from one matmul per depth chunk in tile-local coordinates, are shifted to the
+Gaussian's mean (``centre_moments``) and summed per Gaussian in float64; C is applied once per
+Gaussian. Only the intersections the walk reaches (early termination) and the Gaussians they
+belong to are touched; every other Gaussian has exactly zero Fisher.
 """
 
 from __future__ import annotations
