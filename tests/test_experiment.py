@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 from tests.conftest import free_port
 from pipeline.experiment.app import CONF_DIR
 from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.provenance import code_version
 from pipeline.experiment.records import RecordsFile, records_from_mlflow
 from pipeline.experiment.sweep import run_sweep
 
@@ -121,7 +122,7 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
         sorted(ray_records[ray_records["kind"] == "final"]["psnr"].round(6))
 
 
-def test_relaunch_skips_finished_jobs_and_runs_only_new_ones(base):
+def test_relaunch_skips_finished_jobs_and_runs_only_new_ones(base, capsys):
     out = base / "resume"
     common = ["experiment=debug", *TINY, f"output_dir={out}", "executor=local", "tracking=mlflow"]
     first = run_sweep(composed([*common, "method=[random]"]))
@@ -131,6 +132,14 @@ def test_relaunch_skips_finished_jobs_and_runs_only_new_ones(base):
     frame = RecordsFile(out).frame  # tidy: one final row per job, round rows per views
     assert set(frame["kind"]) == {"round", "final"}
     assert frame[frame["kind"] == "final"]["config_hash"].is_unique and len(frame[frame["kind"] == "final"]) == 2
+    assert set(frame["code_version"]) == {code_version()}
+    # jobs computed by other code are kept on relaunch, and the sweep says so
+    records = RecordsFile(out)
+    records.frame.loc[records.frame["method"] == "random", "code_version"] = "0123456789ab"
+    records.add([])
+    capsys.readouterr()
+    run_sweep(composed([*common, "method=[random,coverage]"]))
+    assert "1 skipped job(s) were computed by code 0123456789ab" in capsys.readouterr().out
     # MLflow alone is enough to skip: drop the records file
     (out / "records.parquet").unlink()
     third = run_sweep(composed([*common, "method=[random,coverage]"]))
@@ -194,3 +203,22 @@ def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_code_version_names_the_commit_and_uncommitted_changes(tmp_path):
+    import subprocess
+    from pipeline.experiment.provenance import stale_versions
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    git = ["git", "-C", str(repo), "-c", "user.email=t@t", "-c", "user.name=t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (repo / "a.txt").write_text("1")
+    subprocess.run([*git, "add", "a.txt"], check=True)
+    subprocess.run([*git, "commit", "-qm", "one"], check=True)
+    head = subprocess.run([*git, "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True).stdout.strip()
+    assert code_version(repo) == head
+    (repo / "a.txt").write_text("2")
+    code_version.cache_clear()
+    assert code_version(repo) == head + "-dirty"
+    assert code_version(tmp_path / "plain").startswith("gopre ")  # not a checkout: the package version
+    assert stale_versions({"h1": "a", "h2": "b", "h3": "b", "h4": None}, "a") == {"b": 2, "unrecorded": 1}

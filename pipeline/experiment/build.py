@@ -22,12 +22,13 @@ from pipeline.acquisition import make_strategy
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
+from pipeline.experiment.provenance import code_version
 
 JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol"}
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips"}
-NOT_HASHED = ("execution", "scene_path", "sweep", "index")
+NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version")
 
 
 class ConfigError(ValueError):
@@ -119,6 +120,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
                                 "job_dir": str(output_dir / "jobs" / job["config_hash"])}
             validate_job(job)
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)
+            job["code_version"] = code_version()
             jobs.append(job)
     return jobs
 

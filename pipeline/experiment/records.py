@@ -6,7 +6,8 @@ Rows, by ``kind``:
 - ``sparsification``: one per (uncertainty method, fraction) of an uncertainty job.
 - ``ause``: one per uncertainty method of an uncertainty job.
 Identifying columns on every row: sweep, config_hash, run_id, status, dataset, scene, method,
-strategy, protocol, seed, setting (the sweep-axis values as ``key=value, ...``), axes (JSON).
+strategy, protocol, seed, setting (the sweep-axis values as ``key=value, ...``), axes (JSON),
+code_version (the code that computed the job, ``provenance.code_version``).
 The file is rewritten atomically after every job, so a killed sweep loses no finished job.
 """
 
@@ -28,7 +29,7 @@ def identity(job: dict, outcome: dict, run_id: str | None) -> dict:
             "status": outcome["status"], "job_kind": job["kind"], "dataset": job["dataset"],
             "scene": job["scene"], "method": job["method"], "strategy": job["strategy"],
             "protocol": job["protocol"]["kind"], "seed": job["seed"], "setting": job["setting"],
-            "axes": json.dumps(job["axes"], sort_keys=True)}
+            "axes": json.dumps(job["axes"], sort_keys=True), "code_version": job.get("code_version")}
 
 
 def episode_rows(base: dict, result: dict, seconds: float) -> list[dict]:
@@ -84,6 +85,14 @@ class RecordsFile:
         done = self.frame[(self.frame["kind"] == "final") & (self.frame["status"] == "FINISHED")]
         return set(done["config_hash"])
 
+    def finished_versions(self) -> dict[str, str | None]:
+        """config hash -> code version of each finished job (None if not recorded)."""
+        if self.frame.empty:
+            return {}
+        done = self.frame[(self.frame["kind"] == "final") & (self.frame["status"] == "FINISHED")]
+        versions = done["code_version"] if "code_version" in done else [None] * len(done)
+        return {h: (v if isinstance(v, str) else None) for h, v in zip(done["config_hash"], versions)}
+
     def add(self, rows: list[dict]) -> None:
         """Replace the rows of these jobs (by config hash) and rewrite the file atomically."""
         hashes = {r["config_hash"] for r in rows}
@@ -123,7 +132,8 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "status": run.info.status, "job_kind": tags.get("kind", "episode"), "dataset": tags.get("dataset"),
             "scene": tags.get("scene"), "method": tags.get("method"), "strategy": tags.get("strategy"),
             "protocol": tags.get("protocol"), "seed": int(tags.get("seed", 0)),
-            "setting": tags.get("setting", ""), "axes": params.get("axes", "{}")}
+            "setting": tags.get("setting", ""), "axes": params.get("axes", "{}"),
+            "code_version": tags.get("code_version")}
     final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": metrics.get("final_ssim"),
              "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
              "lpips_status": params.get("splat.lpips")}

@@ -19,6 +19,7 @@ from pipeline.data.scene import Scene
 from pipeline.data.synthetic import generate
 from pipeline.experiment.build import episode_config, expand_jobs
 from pipeline.experiment.executor import make_executor, scene_key
+from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
 
@@ -98,6 +99,16 @@ def prepare_scenes(jobs: list[dict]) -> dict[str, Scene]:
     return scenes
 
 
+def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: Path) -> None:
+    """Say when skipped jobs were computed by other code than the code running now."""
+    current = code_version()
+    finished = {h: v for h, v in records.finished_versions().items() if h in skipped}
+    for version, count in stale_versions(finished, current).items():
+        print(f"[{name}] note: {count} skipped job(s) were computed by code {version}, this is "
+              f"{current}; their results are kept. Use a new output_dir to recompute them "
+              f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).", flush=True)
+
+
 def run_sweep(cfg: DictConfig) -> SweepSummary:
     start = time.perf_counter()
     jobs = expand_jobs(cfg)
@@ -111,6 +122,7 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
     todo = [j for j in jobs if j["config_hash"] not in done]
     print(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
           f"{len(todo)} to run; output in {output_dir}", flush=True)
+    warn_stale(str(cfg.name), records, {j["config_hash"] for j in jobs} & done, output_dir)
     (output_dir / "jobs.json").write_text(json.dumps(jobs, indent=1))
     executor = make_executor(resolved["executor"])
     failed = 0

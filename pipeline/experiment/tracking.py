@@ -14,7 +14,9 @@ import tempfile
 import time
 from pathlib import Path
 
-TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting")
+from pipeline.experiment.provenance import code_version
+
+TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version")
 
 
 def flatten(data: dict, prefix: str = "") -> dict[str, str]:
@@ -29,7 +31,8 @@ def flatten(data: dict, prefix: str = "") -> dict[str, str]:
 
 
 def job_params(job: dict) -> dict[str, str]:
-    return flatten({k: v for k, v in job.items() if k not in ("execution", "config_hash", "sweep")})
+    return flatten({k: v for k, v in job.items()
+                    if k not in ("execution", "config_hash", "sweep", "code_version")})
 
 
 class NoTracker:
@@ -76,7 +79,8 @@ class MlflowTracker:
 
     def start(self, sweep_config: dict, jobs: int) -> None:
         run = self.client.create_run(self.experiment_id, run_name=f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}",
-                                     tags={"kind": "sweep", "jobs": str(jobs)})
+                                     tags={"kind": "sweep", "jobs": str(jobs),
+                                           "code_version": code_version()})
         self.parent = run.info.run_id
         self._log_params(self.parent, flatten(sweep_config))
 
@@ -97,7 +101,7 @@ class MlflowTracker:
             self.client.log_batch(run_id, metrics=items[i:i + 1000])
 
     def log_job(self, job: dict, outcome: dict) -> str:
-        tags = {k: str(job[k]) for k in TAGS}
+        tags = {k: str(job.get(k)) for k in TAGS}
         tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or "",
                      "attempts": str(outcome.get("attempts"))})
         run = self.client.create_run(self.experiment_id, run_name=f"{job['method']} {job['scene']} s{job['seed']}",

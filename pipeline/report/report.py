@@ -104,7 +104,7 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
     final = frame[frame["kind"] == "final"]
     cols = [c for c in ("sweep", "method", "dataset", "scene", "seed", "setting", "config_hash", "run_id",
-                        "status", "psnr", "attempts") if c in final]
+                        "status", "psnr", "attempts", "code_version") if c in final]
     return final[cols].sort_values(["method", "dataset", "scene", "seed"]).reset_index(drop=True)
 
 
