@@ -80,10 +80,7 @@ class RecordsFile:
         self.frame = pd.read_parquet(self.path) if self.path.exists() else pd.DataFrame()
 
     def finished_hashes(self) -> set[str]:
-        if self.frame.empty:
-            return set()
-        done = self.frame[(self.frame["kind"] == "final") & (self.frame["status"] == "FINISHED")]
-        return set(done["config_hash"])
+        return set(self.finished_versions())
 
     def finished_versions(self) -> dict[str, str | None]:
         """config hash -> code version of each finished job (None if not recorded)."""

@@ -56,54 +56,51 @@ class FeatureJacobian:
     sh_slope: Tensor
 
     def _blocks(self):
-        """Yield (group, column slice of the flattened layout)."""
-        start = 0
+        """Yield (group, its column slice in the flattened layout, its column slice in
+        ``geometry`` for a geometric group else None)."""
+        start, geo_start = 0, 0
         for group, width in self.layout:
-            yield group, slice(start, start + width)
+            geo = None
+            if group in GEOMETRIC:
+                geo, geo_start = slice(geo_start, geo_start + width), geo_start + width
+            yield group, slice(start, start + width), geo
             start += width
+
+    def _sh_slope(self, group: str) -> Tensor:
+        """[N, k, 3] slopes of the coefficients of ``sh0`` (k = 1) or ``shN``."""
+        return self.sh_slope[:, :1] if group == "sh0" else self.sh_slope[:, 1:]
 
     def fisher_diagonal(self, feature_fisher: Tensor) -> Tensor:
         """diag(A^T G A) [N, P] float64 for G [N, 9, 9] float64, block by block."""
         G = feature_fisher
-        n = G.shape[0]
         colour = torch.diagonal(G[:, COLOUR_ROWS, COLOUR_ROWS], dim1=1, dim2=2)  # [N, 3]
         rows = list(GEOMETRIC_ROWS)
         geo = self.geometry.to(G.dtype)
         geo_f = ((G[:, rows][:, :, rows] @ geo) * geo).sum(1) if geo.shape[2] else None  # [N, Q]
-        sh_f = self.sh_slope.to(G.dtype).square() * colour[:, None, :]  # [N, K, 3]
-        out, q = [], 0
-        for group, cols in self._blocks():
-            if group in GEOMETRIC:
-                out.append(geo_f[:, q:q + cols.stop - cols.start])
-                q += cols.stop - cols.start
+        out = []
+        for group, _, geo_cols in self._blocks():
+            if geo_cols is not None:
+                out.append(geo_f[:, geo_cols])
             elif group == "logit_opacities":
                 out.append((G[:, OPACITY_ROW, OPACITY_ROW] * self.opacity_slope.to(G.dtype) ** 2)[:, None])
-            elif group == "sh0":
-                out.append(sh_f[:, 0])
-            else:
-                out.append(sh_f[:, 1:].reshape(n, -1))
+            else:  # column k * 3 + c is coefficient k of channel c
+                sh_f = self._sh_slope(group).to(G.dtype).square() * colour[:, None, :]
+                out.append(sh_f.reshape(G.shape[0], -1))
         return torch.cat(out, dim=1)
 
     def dense(self) -> Tensor:
         """A [N, 9, P] (geometry dtype)."""
         n = self.geometry.shape[0]
-        width = sum(w for _, w in self.layout)
-        A = self.geometry.new_zeros(n, 9, width)
-        q = 0
-        for group, cols in self._blocks():
-            if group in GEOMETRIC:
-                A[:, list(GEOMETRIC_ROWS), cols] = self.geometry[:, :, q:q + cols.stop - cols.start]
-                q += cols.stop - cols.start
+        A = self.geometry.new_zeros(n, 9, sum(w for _, w in self.layout))
+        for group, cols, geo_cols in self._blocks():
+            if geo_cols is not None:
+                A[:, list(GEOMETRIC_ROWS), cols] = self.geometry[:, :, geo_cols]
             elif group == "logit_opacities":
                 A[:, OPACITY_ROW, cols.start] = self.opacity_slope
-            else:
-                slope = self.sh_slope[:, :1] if group == "sh0" else self.sh_slope[:, 1:]  # [N, k, 3]
-                k = slope.shape[1]
-                for c in range(3):  # column k' * 3 + c is coefficient k' of channel c
-                    A[:, 6 + c, cols.start + c:cols.stop:3] = slope[:, :, c]
-                assert k * 3 == cols.stop - cols.start
+            else:  # column k * 3 + c is coefficient k of channel c
+                for c in range(3):
+                    A[:, 6 + c, cols.start + c:cols.stop:3] = self._sh_slope(group)[:, :, c]
         return A
-
 
 def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
                      groups: tuple[str, ...], sh_degree: int | None = None,
