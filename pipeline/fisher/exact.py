@@ -289,8 +289,8 @@ def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
             proj = project(gaussians.detach(), *view, spec.sh_degree, settings.near)
         walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
         seen, G = feature_fisher(walk)
-        _, jac = feature_jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree,
-                                  settings.near)
+        jac = feature_jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree,
+                               settings.near)
         yield ViewFactors(seen, jac, G, walk)
 
 

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from pipeline.splat import Gaussians
-from pipeline.splat.project import Projection, project, view_directions
+from pipeline.splat.project import project, view_directions
 from pipeline.splat.sh import sh_basis
 
 FEATURES = ("u", "v", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b")
@@ -104,8 +104,8 @@ class FeatureJacobian:
 
 def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
                      groups: tuple[str, ...], sh_degree: int | None = None,
-                     near: float = 0.01) -> tuple[Projection, FeatureJacobian]:
-    """Project and return (projection, A) for the selected raw parameter groups."""
+                     near: float = 0.01) -> FeatureJacobian:
+    """A = d features / d raw parameters of one view for the selected raw parameter groups."""
     layout = param_layout(gaussians, groups)
     geometric = [g for g, _ in layout if g in GEOMETRIC]
     params = {k: v.detach() for k, v in gaussians.params().items()}
@@ -121,11 +121,9 @@ def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: in
             geometry = torch.cat([gr.reshape(8, n, -1) for gr in grads], dim=2).transpose(0, 1)
         else:
             geometry = params["means"].new_zeros(n, 8, 0)
-    detached = Projection(*(getattr(proj, f).detach() for f in
-                            ("means2d", "conics", "depths", "radii", "colors", "opacities")))
     degree = gaussians.sh_degree if sh_degree is None else sh_degree
     basis = torch.stack(sh_basis(degree, view_directions(params["means"], viewmat)), dim=1)  # [N, k]
     slope = basis.new_zeros(n, gaussians.shN.shape[1] + 1, 3)
-    slope[:, :basis.shape[1]] = basis[:, :, None] * (detached.colors > 0)[:, None, :]
-    o = detached.opacities
-    return detached, FeatureJacobian(layout, geometry, o * (1 - o), slope)
+    slope[:, :basis.shape[1]] = basis[:, :, None] * (proj.colors.detach() > 0)[:, None, :]
+    o = proj.opacities.detach()
+    return FeatureJacobian(layout, geometry, o * (1 - o), slope)
