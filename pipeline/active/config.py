@@ -1,8 +1,10 @@
 """What one episode runs: the fit recipe, the schedule, the post-selection policy, evaluation.
 
 The schedule follows the paper: with n views taken, train ``epochs_per_view`` passes over them
-(``epochs_per_view * n`` iterations), select, add; once the budget is reached, train until the
-fit recipe's total iteration count. Post-selection policies:
+(``epochs_per_view * n`` iterations), select, add; once the budget is reached, train the last pick
+in: up to ``max(fit.iterations, rounds + epochs_per_view * budget)`` in all, the fit recipe rescaled
+to that total when the rounds alone would not fit (``pipeline.active.schedule`` states the rule).
+Post-selection policies:
 
 - ``reset_opacity`` (the paper, default): clamp every opacity to the reset value, continue.
 - ``reload`` (FisherRF): restart from the initial Gaussians with fresh optimizer and schedules.
@@ -36,8 +38,8 @@ class EpisodeConfig:
     def __post_init__(self) -> None:
         if self.post_selection not in POLICIES:
             raise ValueError(f"post_selection must be one of {POLICIES}, got {self.post_selection!r}")
-        if self.epochs_per_view < 0:
-            raise ValueError(f"epochs_per_view must be >= 0, got {self.epochs_per_view}")
+        if self.epochs_per_view < 1:  # a round that trains nothing would evaluate a just-reset model
+            raise ValueError(f"epochs_per_view must be >= 1, got {self.epochs_per_view}")
         if self.views_per_round < 1:
             raise ValueError(f"views_per_round must be >= 1, got {self.views_per_round}")
         if not 0 < self.pool_keep_fraction <= 1:

@@ -1,7 +1,10 @@
 """One active-reconstruction episode: (scene, strategy, protocol, seed) -> records.
 
 initial views -> train -> select from the remaining pool -> add -> post-selection policy -> ...
-until the budget -> final training -> evaluation. ``run_episode`` is a pure function of its inputs:
+until the budget -> final training -> evaluation. How long each phase trains is the
+``pipeline.active.schedule`` rule: the final phase always trains the last pick in, and the fit
+recipe spans the iterations actually run. A final model that scores more than ``DEGRADED_DB``
+below the last round on the same views is flagged ``degraded`` in the final metrics. ``run_episode`` is a pure function of its inputs:
 it returns records and calls an optional per-round callback, it never logs or tracks. With a
 checkpoint folder it saves its state after every round and resumes from the last finished one,
 ending with the same result as an uninterrupted run.
@@ -20,6 +23,7 @@ import torch
 from pipeline.acquisition import SelectionContext, make_strategy, reduce_pool, sample_probes
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
+from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
 from pipeline.acquisition.base import seeded_subset
 from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.scene import Scene
@@ -28,6 +32,9 @@ from pipeline.fit.init import from_point_cloud, random_in_box
 from pipeline.fit.trainer import Trainer
 from pipeline.memory import peak_rss_mb
 from pipeline.splat import Gaussians
+
+# A final PSNR this far below the last round's, on the same curve views, flags the episode.
+DEGRADED_DB = 3.0
 
 
 @dataclass
@@ -106,6 +113,10 @@ class Episode:
         if cfg.fit.image_width is not None and self.pool.cameras.width != cfg.fit.image_width:
             raise ValueError(f"scene {scene.root} was read at width {self.pool.cameras.width} but "
                              f"fit.image_width is {cfg.fit.image_width}")
+        self.schedule: Schedule = episode_schedule(
+            len(self.views.initial_ids), self.views.budget, cfg.views_per_round, cfg.epochs_per_view,
+            cfg.fit.iterations, reload=cfg.post_selection == "reload")
+        self.fit = scaled_fit(cfg.fit, self.schedule)
         self.strategy = make_strategy(cfg.strategy, **cfg.strategy_options)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.curve_ids = uniform_subset(self.views.test_ids, cfg.curve_test_views)
@@ -120,7 +131,7 @@ class Episode:
         return split.images.stack(ids).to(self.device)  # [len(ids), H, W, 3]
 
     def _new_trainer(self) -> Trainer:
-        fit = self.cfg.fit
+        fit = self.fit
         if self.cfg.post_selection == "reset_opacity":
             # the paper resets opacities after every selection instead of on 3DGS's fixed schedule;
             # both would put resets right before an evaluation of the PSNR-vs-views curve
@@ -194,18 +205,31 @@ class Episode:
         if policy == "reset_opacity":
             self.trainer.reset_opacity()
 
+    def fingerprint_data(self) -> dict:
+        """What a checkpoint must match: the config and, when the rule rescaled it, the fit's
+        horizon (a checkpoint of an older schedule is then refused rather than mixed in)."""
+        data = {"scene": str(self.scene.root), "config": self.cfg.to_dict()}
+        if self.fit.iterations != self.cfg.fit.iterations:
+            data["fit_iterations"] = self.fit.iterations
+        return data
+
     def finish(self, progress: bool) -> None:
-        seconds = self.train(self.cfg.fit.iterations - self.trainer.step, progress)
+        iterations = max(self.schedule.total - self.trainer.step, 1)
+        seconds = self.train(iterations, progress)
+        last_round = self.records[-1] if self.records else None
         rec = self.record(seconds)
         rec.peak_rss_mb = round(peak_rss_mb(), 1)
         self.records.append(rec)
+        drop = last_round.test_psnr - rec.test_psnr if last_round is not None else 0.0
         lpips = LpipsMetric() if self.cfg.lpips else None
         m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.views.test_ids],
                            self.images(self.test, self.views.test_ids), self.background, lpips)
         self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "LPIPS disabled in the config",
                       "test_views": len(self.views.test_ids), "per_view_psnr": m.psnr,
                       "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.gaussians),
-                      "iterations": self.trainer.step}
+                      "iterations": self.trainer.step, "final_phase_iterations": iterations,
+                      "schedule": self.schedule.to_dict(), "curve_psnr_drop": round(drop, 3),
+                      "degraded": bool(drop > DEGRADED_DB)}
         self.done = True
 
 
@@ -218,7 +242,7 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
     start = time.perf_counter()
     ep = Episode(scene, cfg, device)
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
-    key = fingerprint({"scene": str(scene.root), "config": cfg.to_dict()})
+    key = fingerprint(ep.fingerprint_data())
     state = load_checkpoint(folder, key)
     if state is not None:
         ep.restore(state)

@@ -135,6 +135,9 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
     if budget <= initial:
         raise ValueError(f"budget={budget} must exceed initial_views={initial}")
     pool = [i for i in pool_all if i not in set(init)]
+    if budget > initial + len(pool):
+        raise ValueError(f"budget={budget} exceeds the {initial} initial views plus the {len(pool)} "
+                         f"views the pool can still give")
     return ProtocolViews(pool_split, pool, init, test_split, test_all,
                          [i for i in probe_pool if i not in set(init)] or probe_pool, budget, probes,
                          up.tolist())

@@ -163,8 +163,6 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
 
 
-def covariances(log_scales: Tensor, quats: Tensor) -> Tensor:
-    """World covariances R S S^T R^T, [N, 3, 3]."""
-    rot = quat_to_rotmat(quats)
-    m = rot * torch.exp(log_scales)[:, None, :]  # R S
-    return m @ m.transpose(-1, -2)
+def scaled_rotations(log_scales: Tensor, quats: Tensor) -> Tensor:
+    """R S [N, 3, 3], the square root of the world covariance (R S)(R S)^T."""
+    return quat_to_rotmat(quats) * torch.exp(log_scales)[:, None, :]

@@ -13,10 +13,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from pipeline.splat.gaussians import Gaussians, covariances
+from pipeline.splat.gaussians import Gaussians, scaled_rotations
 from pipeline.splat.sh import eval_sh
 
 EPS_2D = 0.3
+# Largest 2D variance (px^2) a Gaussian may have and still be drawn: a standard deviation of about
+# 3e7 px. Beyond it the float32 products of the conic's backward could overflow; such Gaussians
+# (only ever seen right at the near plane) are culled like Gaussians behind the camera.
+MAX_VARIANCE_2D = 1e15
 
 
 @dataclass
@@ -42,6 +46,31 @@ def view_directions(means: Tensor, viewmat: Tensor) -> Tensor:
     return torch.nn.functional.normalize(means + rot.T @ trans, dim=-1)
 
 
+def conic_2d(jac: Tensor, rs_cam: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The dilated 2D covariance J (R S)(R S)^T J^T + EPS_2D I and its inverse, without cancellation.
+
+    jac [N, 2, 3] the projection Jacobian, rs_cam [N, 3, 3] = W R S (the camera-frame square root
+    of the 3D covariance). With M = J W R S [N, 2, 3] and rows m0, m1, the covariance is M M^T and
+    its determinant is |m0 x m1|^2 (Lagrange's identity) + EPS (|m0|^2 + |m1|^2) + EPS^2: a sum of
+    non-negative terms, so det >= EPS^2 holds in floating point too. (The textbook a c - b^2 cancels
+    catastrophically in float32 for the huge covariances of Gaussians at the near plane and gave 0
+    or negative determinants: infinite or indefinite conics, NaN renders.)
+    Returns conics [N, 3] = (a, b, c) of the inverse, the dilated diagonal a, c [N], det [N] and
+    ``finite`` [N] bool: False for Gaussians too large to draw (their conics are set to safe values).
+    """
+    m = jac @ rs_cam  # [N, 2, 3]
+    with torch.no_grad():
+        size = m.square().sum(dim=(1, 2))
+        finite = torch.isfinite(size) & (size < MAX_VARIANCE_2D)
+    m = torch.where(finite[:, None, None], m, torch.zeros_like(m))  # culled rows: finite, no gradient
+    m0, m1 = m.unbind(1)
+    a0, c0, b = (m0 * m0).sum(-1), (m1 * m1).sum(-1), (m0 * m1).sum(-1)
+    det = torch.linalg.cross(m0, m1).square().sum(-1) + EPS_2D * (a0 + c0) + EPS_2D ** 2
+    a, c = a0 + EPS_2D, c0 + EPS_2D
+    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    return conics, a, c, det, finite
+
+
 def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
             sh_degree: int | None = None, near: float = 0.01) -> Projection:
     """Project ``gaussians`` with world->camera ``viewmat`` [4, 4] and intrinsics ``K`` [3, 3]."""
@@ -62,13 +91,8 @@ def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height
     zero = torch.zeros_like(z)
     jac = torch.stack([fx / z, zero, -fx * tx / (z * z),
                        zero, fy / z, -fy * ty / (z * z)], dim=-1).reshape(-1, 2, 3)  # [N, 2, 3]
-    cov_cam = rot @ covariances(gaussians.log_scales, gaussians.quats) @ rot.T  # [N, 3, 3]
-    cov2d = jac @ cov_cam @ jac.transpose(1, 2)  # [N, 2, 2]
-    a = cov2d[:, 0, 0] + EPS_2D
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + EPS_2D
-    det = a * c - b * b  # >= 0.09 since cov2d is PSD
-    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    rs_cam = rot @ scaled_rotations(gaussians.log_scales, gaussians.quats)  # [N, 3, 3]
+    conics, a, c, det, finite = conic_2d(jac, rs_cam)
 
     means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
     with torch.no_grad():
@@ -77,7 +101,7 @@ def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height
         radius = torch.ceil(3 * torch.sqrt(lam))
         u, v = means2d.unbind(-1)
         on_image = (u + radius > 0) & (u - radius < width) & (v + radius > 0) & (v - radius < height)
-        radii = torch.where(in_front & on_image, radius, torch.zeros_like(radius)).long()
+        radii = torch.where(in_front & on_image & finite, radius, torch.zeros_like(radius)).long()
 
     dirs = view_directions(gaussians.means, viewmat)
     colors = torch.clamp_min(eval_sh(sh_degree, gaussians.sh, dirs) + 0.5, 0.0)

@@ -122,7 +122,7 @@ def intersection_coeffs(bins: TileBins, means2d: Tensor, conics: Tensor,
     g = bins.gauss_ids
     mx, my = local_means(bins, means2d).unbind(-1)
     a, b, c = conics[g].unbind(-1)
-    log_o = torch.log(opacities[g])
+    log_o = torch.log(opacities[g].clamp_min(torch.finfo(opacities.dtype).tiny))  # opacity 0: no NaN grad
     psi = torch.stack([-0.5 * a, -b, -0.5 * c, a * mx + b * my, b * mx + c * my,
                        log_o - 0.5 * (a * mx * mx + c * my * my) - b * mx * my], dim=-1)
     return psi
