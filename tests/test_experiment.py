@@ -222,3 +222,51 @@ def test_code_version_names_the_commit_and_uncommitted_changes(tmp_path):
     assert code_version(repo) == head + "-dirty"
     assert code_version(tmp_path / "plain").startswith("gopre ")  # not a checkout: the package version
     assert stale_versions({"h1": "a", "h2": "b", "h3": "b", "h4": None}, "a") == {"b": 2, "unrecorded": 1}
+
+
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_round_progress_reaches_the_driver_and_mlflow_while_jobs_run(executor, base, ray_session,
+                                                                    capsys):
+    out = base / f"progress_{executor}"
+    summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random,coverage]",
+                                  f"executor={executor}", "tracking=mlflow", f"output_dir={out}"]))
+    assert summary.finished == 2
+    lines = capsys.readouterr().out.splitlines()
+    for method in ("random", "coverage"):
+        mine = [ln for ln in lines if f"] {method} on " in ln and " views, PSNR " in ln]
+        # budget 3 from 2 views: one selection round, then the final evaluation; one line each
+        assert [ln.split(": ", 1)[1].split(",")[0] for ln in mine] == ["round 1/2", "final"], lines
+        assert ", 2 views, " in mine[0] and ", 3 views, " in mine[1]
+        done = next(i for i, ln in enumerate(lines) if f"| {method} on " in ln)
+        assert lines.index(mine[-1]) < done  # heard before the job's end line
+    from mlflow import MlflowClient
+    client = MlflowClient(summary.tracking_uri)
+    exp = client.get_experiment_by_name("debug")
+    for run in client.search_runs([exp.experiment_id], "tags.config_hash != ''"):
+        steps = sorted(m.step for m in client.get_metric_history(run.info.run_id, "test_psnr"))
+        assert steps == [2, 3] and run.info.status == "FINISHED"  # logged live once, not twice
+
+
+def test_a_degraded_final_model_is_flagged_in_records_mlflow_and_output(base, capsys, monkeypatch):
+    """A schedule that evaluates right after the last opacity reset (as the old CPU preset did on
+    real scenes) must not pass silently into a table."""
+    from pipeline.active import episode as episode_module
+    from pipeline.active.schedule import Schedule
+    real = episode_module.views_schedule
+    monkeypatch.setattr(episode_module, "views_schedule", lambda views, cfg: Schedule(
+        real(views, cfg).round_views, real(views, cfg).round_iterations, 0,
+        sum(real(views, cfg).round_iterations)))
+    out = base / "degraded"
+    summary = run_sweep(composed(["experiment=debug", *TINY, "splat.iterations=null", "method=[coverage]",
+                                  "executor=local", "tracking=mlflow", f"output_dir={out}"]))
+    assert summary.finished == 1
+    warning = [ln for ln in capsys.readouterr().out.splitlines() if "degraded model" in ln]
+    assert len(warning) == 1 and "coverage on " in warning[0]
+    final = RecordsFile(out).frame.query("kind == 'final'").iloc[0]
+    assert bool(final["degraded"]) and final["curve_psnr_drop"] > 3
+    from mlflow import MlflowClient
+    client = MlflowClient(summary.tracking_uri)
+    run = client.get_run(final["run_id"])
+    assert run.data.tags["degraded"] == "true"
+    from_mlflow = records_from_mlflow(summary.tracking_uri, "debug").query("kind == 'final'")
+    assert bool(from_mlflow["degraded"].iloc[0])

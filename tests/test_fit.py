@@ -144,3 +144,44 @@ def test_scaled_schedules_and_no_opacity_reset_at_the_end():
     before = torch.sigmoid(t.params["logit_opacities"].detach()).max()
     t.train(20)
     assert torch.sigmoid(t.params["logit_opacities"].detach()).max() > 0.5 * before
+
+
+def test_a_non_finite_step_is_skipped_saved_counted_and_fails_past_the_limit(tmp_path, monkeypatch):
+    import pipeline.fit.trainer as trainer_module
+    g = random_scene(50, seed=0)
+    cams = sphere_cameras(2, 16, 16)
+    with torch.no_grad():
+        imgs = render(g, cams).rgb
+    t = Trainer(g, cams, imgs, tiny_preset(), nonfinite_dir=tmp_path)
+    t.train_step()
+    real_loss = trainer_module.photometric_loss
+    poisoned = {"on": "gradient"}
+
+    def loss_with_nan(image, target, weight):
+        loss = real_loss(image, target, weight)
+        if poisoned["on"] == "gradient":  # a finite loss whose gradient is NaN (0 * d sqrt(0))
+            return loss + 0 * (image.sum() * 0).sqrt()
+        return loss * float("nan") if poisoned["on"] else loss
+
+    monkeypatch.setattr(trainer_module, "photometric_loss", loss_with_nan)
+    before = {k: v.detach().clone() for k, v in t.params.items()}
+    t.train_step()
+    assert t.nonfinite_steps == 1
+    for name, value in t.params.items():
+        assert torch.equal(value.detach(), before[name]), name
+    poisoned["on"] = "loss"
+    t.train_step()
+    assert t.nonfinite_steps == 2
+    for name, value in t.params.items():  # the NaN never reached the parameters
+        assert torch.equal(value.detach(), before[name]), name
+    case = torch.load(tmp_path / "nonfinite_step000003.pt", weights_only=False)
+    assert {"gaussians", "viewmats", "Ks", "width", "height", "step", "view"} <= set(case)
+    assert case["step"] == 3 and torch.equal(case["gaussians"]["means"], before["means"])
+    assert t.state_dict()["nonfinite_steps"] == 2  # checkpointed with the trainer
+    poisoned["on"] = None
+    t.train_step()  # training goes on
+    assert all(bool(torch.isfinite(v).all()) for v in t.params.values())
+    poisoned["on"] = "loss"
+    with pytest.raises(trainer_module.NonFiniteTraining, match=r"step \d+ \(view \d\).*nonfinite_step"):
+        for _ in range(trainer_module.NONFINITE_STEP_LIMIT + 1):
+            t.train_step()

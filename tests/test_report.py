@@ -125,3 +125,17 @@ def test_sparsification_figure_and_ause_table(tmp_path):
 def test_missing_records_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no records file"):
         make_report(tmp_path, tmp_path / "out")
+
+
+def test_a_degraded_job_gets_a_note_under_its_table_and_in_the_run_list(records, tmp_path):
+    records = records.assign(degraded=False, curve_psnr_drop=0.1)
+    bad = (records["method"] == "random") & (records["scene"] == "bonsai") & (records["kind"] == "final")
+    records.loc[bad, ["degraded", "curve_psnr_drop"]] = [True, 18.47]
+    path = tmp_path / "records.parquet"
+    records.to_parquet(path)
+    make_report(path, tmp_path / "out")
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert "1 job(s) in these cells ended on a degraded model" in table
+    assert "random on bonsai (seed 0): final PSNR 18.47 dB below its last round" in table
+    assert "degraded" in (tmp_path / "out" / "runs.csv").read_text().splitlines()[0]
+    assert "18.47" in (tmp_path / "out" / "table.tex").read_text()

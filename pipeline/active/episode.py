@@ -100,11 +100,23 @@ def uniform_subset(ids: list[int], count: int | None) -> list[int]:
     return [ids[i] for i in np.linspace(0, len(ids) - 1, count).round().astype(int)]
 
 
+def views_schedule(views: ProtocolViews, cfg: EpisodeConfig) -> Schedule:
+    return episode_schedule(len(views.initial_ids), views.budget, cfg.views_per_round,
+                            cfg.epochs_per_view, cfg.fit.iterations,
+                            reload=cfg.post_selection == "reload")
+
+
+def episode_plan(scene: Scene, cfg: EpisodeConfig) -> Schedule:
+    """The schedule an episode of ``cfg`` on ``scene`` follows, known before it runs."""
+    return views_schedule(build_protocol(scene, cfg.protocol), cfg)
+
+
 class Episode:
     """The mutable state of one episode between rounds (what a checkpoint holds)."""
 
-    def __init__(self, scene: Scene, cfg: EpisodeConfig, device: str | torch.device | None = None):
-        self.scene, self.cfg = scene, cfg
+    def __init__(self, scene: Scene, cfg: EpisodeConfig, device: str | torch.device | None = None,
+                 folder: Path | None = None):
+        self.scene, self.cfg, self.folder = scene, cfg, folder
         self.device = torch.device(device or "cpu")
         self.background = scene.background.to(self.device)
         self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
@@ -113,9 +125,7 @@ class Episode:
         if cfg.fit.image_width is not None and self.pool.cameras.width != cfg.fit.image_width:
             raise ValueError(f"scene {scene.root} was read at width {self.pool.cameras.width} but "
                              f"fit.image_width is {cfg.fit.image_width}")
-        self.schedule: Schedule = episode_schedule(
-            len(self.views.initial_ids), self.views.budget, cfg.views_per_round, cfg.epochs_per_view,
-            cfg.fit.iterations, reload=cfg.post_selection == "reload")
+        self.schedule = views_schedule(self.views, cfg)
         self.fit = scaled_fit(cfg.fit, self.schedule)
         self.strategy = make_strategy(cfg.strategy, **cfg.strategy_options)
         self.generator = torch.Generator().manual_seed(cfg.seed)
@@ -137,7 +147,7 @@ class Episode:
             # both would put resets right before an evaluation of the PSNR-vs-views curve
             fit = fit.with_changes(densify=replace(fit.densify, periodic_opacity_reset=False))
         return Trainer(self.init, self.pool.cameras[self.taken], self.images(self.pool, self.taken),
-                       fit, self.background)
+                       fit, self.background, nonfinite_dir=self.folder)
 
     # -- checkpoint ---------------------------------------------------------------------------
     def state(self, key: str) -> dict:
@@ -199,7 +209,9 @@ class Episode:
     def after_selection(self) -> None:
         policy = self.cfg.post_selection
         if policy == "reload":
+            skipped = self.trainer.nonfinite_steps  # the count spans the whole episode
             self.trainer = self._new_trainer()
+            self.trainer.nonfinite_steps = skipped
             return
         self.trainer.set_views(self.pool.cameras[self.taken], self.images(self.pool, self.taken))
         if policy == "reset_opacity":
@@ -229,7 +241,8 @@ class Episode:
                       "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.gaussians),
                       "iterations": self.trainer.step, "final_phase_iterations": iterations,
                       "schedule": self.schedule.to_dict(), "curve_psnr_drop": round(drop, 3),
-                      "degraded": bool(drop > DEGRADED_DB)}
+                      "degraded": bool(drop > DEGRADED_DB),
+                      "nonfinite_steps": self.trainer.nonfinite_steps}
         self.done = True
 
 
@@ -240,8 +253,8 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
     checkpointed), including the final one; it may raise to stop the episode. ``device``: where
     the model and images live (default CPU); records are identical in form on every device."""
     start = time.perf_counter()
-    ep = Episode(scene, cfg, device)
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
+    ep = Episode(scene, cfg, device, folder)
     key = fingerprint(ep.fingerprint_data())
     state = load_checkpoint(folder, key)
     if state is not None:

@@ -5,6 +5,10 @@ local Ray (started with this machine's cores) or a running cluster (``address``)
 reserves ``execution.threads`` CPUs (and ``gpus_per_job`` GPUs), scenes go into the object store
 once per (scene, resolution), and results are collected with ``ray.wait`` as they finish. Both
 call the same ``run_with_retries``, so they give the same numbers at the same seed.
+
+Progress from inside a job: ``on_round(job, message)`` hears every finished round while the job
+runs. Locally it is called directly; under Ray the tasks put their messages on a Ray queue (an
+actor that takes no CPU) that the driver drains while it waits for results.
 """
 
 from __future__ import annotations
@@ -17,22 +21,49 @@ from pipeline.data.scene import Scene
 from pipeline.experiment.job import run_with_retries
 
 OnDone = Callable[[dict, dict], None]
+OnRound = Callable[[dict, dict], None]
+POLL_SECONDS = 0.5  # how often the Ray driver looks for round messages while jobs run
 
 
 class LocalExecutor:
     slots = 1
 
-    def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone) -> None:
+    def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
+            on_round: OnRound | None = None) -> None:
         for job in jobs:
-            on_done(job, run_with_retries(job, scenes.get(scene_key(job))))
+            report = None if on_round is None else (lambda message, job=job: on_round(job, message))
+            on_done(job, run_with_retries(job, scenes.get(scene_key(job)), report))
 
 
 def scene_key(job: dict) -> str:
     return f"{job['scene_path']}@{job['splat'].get('image_width')}/{job['splat']['preset']}"
 
 
-def _remote_run(job: dict, scene: Scene | None) -> dict:
-    return run_with_retries(job, scene)
+def _remote_run(job: dict, scene: Scene | None, queue=None) -> dict:
+    report = None
+    if queue is not None:
+        def report(message: dict) -> None:
+            queue.put_nowait((job["config_hash"], message))
+    return run_with_retries(job, scene, report)
+
+
+class RoundChannel:
+    """Round messages from Ray tasks to the driver, through a Ray queue actor that takes no CPU."""
+
+    def __init__(self, jobs: list[dict], on_round: OnRound):
+        from ray.util.queue import Queue
+
+        self.queue = Queue(actor_options={"num_cpus": 0})
+        self.jobs = {job["config_hash"]: job for job in jobs}
+        self.on_round = on_round
+
+    def drain(self) -> None:
+        while not self.queue.empty():
+            config_hash, message = self.queue.get_nowait()
+            self.on_round(self.jobs[config_hash], message)
+
+    def close(self) -> None:
+        self.queue.shutdown()
 
 
 class RayExecutor:
@@ -56,9 +87,12 @@ class RayExecutor:
                      log_to_driver=False)
         return ray, True
 
-    def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone) -> None:
+    def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
+            on_round: OnRound | None = None) -> None:
         ray, started_here = self._start()
+        channel = None
         try:
+            channel = RoundChannel(jobs, on_round) if on_round is not None else None
             refs = {key: ray.put(scene) for key, scene in scenes.items()}  # once per scene
             cpus = ray.cluster_resources().get("CPU", 1)
             self.slots = max(1, int(cpus // max(1, min(j["execution"]["threads"] for j in jobs)))) if jobs else 1
@@ -67,9 +101,14 @@ class RayExecutor:
             for job in jobs:
                 options = {"num_cpus": job["execution"]["threads"], "num_gpus": self.gpus_per_job,
                            "max_retries": self.max_retries, "name": f"{job['method']}:{job['scene']}"}
-                pending[task.options(**options).remote(job, refs.get(scene_key(job)))] = job
+                queue = channel.queue if channel is not None else None
+                pending[task.options(**options).remote(job, refs.get(scene_key(job)), queue)] = job
             while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
+                done, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS)
+                if channel is not None:  # a job's rounds are all heard before its end
+                    channel.drain()
+                if not done:
+                    continue
                 job = pending.pop(done[0])
                 try:
                     outcome = ray.get(done[0])
@@ -79,6 +118,8 @@ class RayExecutor:
                                "traceback": tb, "result": None, "artifacts": {"traceback.txt": tb.encode()}}
                 on_done(job, outcome)
         finally:
+            if channel is not None:
+                channel.close()
             if started_here:
                 ray.shutdown()
 

@@ -2,7 +2,9 @@
 
 Workers never write to MLflow: they return an outcome dict (records and artifact bytes) that the
 driver tracks. Their job folder holds the episode checkpoint (a killed job resumes from its last
-finished round) and a log with one line per round.
+finished round) and a log with one line per round. While a job runs, each finished round is also
+handed to an optional ``report`` callable as a small dict (``round_message``); the executors carry
+it to the driver, which prints it and logs it to the tracker.
 """
 
 from __future__ import annotations
@@ -13,12 +15,13 @@ import os
 import time
 import traceback
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
 from PIL import Image
 
-from pipeline.active import run_episode
+from pipeline.active import episode_plan, run_episode
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
@@ -55,14 +58,33 @@ def _log(folder: Path, line: str) -> None:
         f.write(f"{time.strftime('%H:%M:%S')} {line}\n")
 
 
-def run_episode_job(job: dict, scene: Scene, folder: Path) -> dict:
+Report = Callable[[dict], None]
+
+
+def round_message(rec, rounds: int) -> dict:
+    """What the driver hears of one finished round: ``round`` counts from 1 to ``rounds`` (the
+    last is the final evaluation, ``final`` True)."""
+    return {"round": rec.round + 1, "rounds": rounds, "final": rec.round + 1 == rounds,
+            "num_views": rec.num_views, "psnr": rec.test_psnr, "ssim": rec.test_ssim,
+            "num_gaussians": rec.num_gaussians, "selected": list(rec.selected),
+            "per_candidate_ms": rec.per_candidate_ms, "selection_seconds": rec.selection_seconds,
+            "seconds": round(rec.train_seconds + rec.selection_seconds, 2)}
+
+
+def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = episode_config(job)
+    rounds = len(episode_plan(scene, cfg).round_views) + 1
 
     def on_round(rec):
         _log(folder, f"round {rec.round}: {rec.num_views} views, psnr {rec.test_psnr:.2f}, "
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
+        if report is not None:
+            report(round_message(rec, rounds))
     result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round,
                          device=job["execution"]["device"])
+    if result.final["degraded"]:
+        _log(folder, f"warning: final PSNR {result.final['curve_psnr_drop']:.2f} dB below the last "
+                     "round's on the same views (degraded)")
     views = scene.split(result.test_split)
     shown = result.test_ids[:job["renders"]]
     with torch.no_grad():
@@ -76,7 +98,7 @@ def run_episode_job(job: dict, scene: Scene, folder: Path) -> dict:
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 
-def run_uncertainty_job(job: dict, scene: Scene, folder: Path) -> dict:
+def run_uncertainty_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     out = run_uncertainty_experiment(scene, episode_config(job), uncertainty_config(job))
     artifacts = {}
     for i, view in enumerate(out["map_ids"]):
@@ -90,8 +112,9 @@ def run_uncertainty_job(job: dict, scene: Scene, folder: Path) -> dict:
     return {"result": result, "artifacts": artifacts}
 
 
-def run_job(job: dict, scene: Scene | None = None) -> dict:
-    """Run one job once; ``scene`` comes from the object store, else it is read here."""
+def run_job(job: dict, scene: Scene | None = None, report: Report | None = None) -> dict:
+    """Run one job once; ``scene`` comes from the object store, else it is read here;
+    ``report`` hears every finished round (``round_message``)."""
     ex = job["execution"]
     set_threads(ex["threads"])
     folder = Path(ex["job_dir"])
@@ -100,19 +123,19 @@ def run_job(job: dict, scene: Scene | None = None) -> dict:
         scene = load_scene(job["scene_path"], width=episode_config(job).fit.image_width)
     start = time.perf_counter()
     runner = run_uncertainty_job if job["kind"] == "uncertainty" else run_episode_job
-    outcome = runner(job, scene, folder)
+    outcome = runner(job, scene, folder, report)
     outcome["seconds"] = round(time.perf_counter() - start, 2)
     return outcome
 
 
-def run_with_retries(job: dict, scene: Scene | None = None) -> dict:
+def run_with_retries(job: dict, scene: Scene | None = None, report: Report | None = None) -> dict:
     """``run_job`` with ``execution.retries`` re-runs after an exception; the outcome says
     FINISHED, or FAILED with the last traceback. Never raises for an application error."""
     attempts = 1 + max(0, int(job["execution"]["retries"]))
     errors = []
     for attempt in range(1, attempts + 1):
         try:
-            outcome = run_job(job, scene)
+            outcome = run_job(job, scene, report)
             return {**outcome, "status": "FINISHED", "attempts": attempt, "errors": errors}
         except Exception:
             errors.append(traceback.format_exc())

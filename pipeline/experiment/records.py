@@ -2,7 +2,10 @@
 
 Rows, by ``kind``:
 - ``round``: one per episode round (``num_views`` = views trained on; the PSNR-vs-views curve).
-- ``final``: one per job: final metrics on every test view, status, selection cost, run id.
+- ``final``: one per job: final metrics on every test view, status, selection cost, run id,
+  ``degraded`` (the final model scored more than 3 dB below the last round on the same views),
+  ``curve_psnr_drop`` (that difference) and ``nonfinite_steps`` (training steps skipped because
+  their loss or gradient was not finite).
 - ``sparsification``: one per (uncertainty method, fraction) of an uncertainty job.
 - ``ause``: one per uncertainty method of an uncertainty job.
 Identifying columns on every row: sweep, config_hash, run_id, status, dataset, scene, method,
@@ -48,7 +51,10 @@ def episode_rows(base: dict, result: dict, seconds: float) -> list[dict]:
                  "per_candidate_ms": float(np.mean([r["per_candidate_ms"] for r in picks])) if picks else None,
                  "selection_seconds": float(np.mean([r["selection_seconds"] for r in picks])) if picks else None,
                  "peak_rss_mb": max((r["peak_rss_mb"] for r in rounds), default=None),
-                 "selected": json.dumps(result["selected"]), "initial": json.dumps(result["initial"])})
+                 "selected": json.dumps(result["selected"]), "initial": json.dumps(result["initial"]),
+                 "degraded": bool(final.get("degraded", False)),
+                 "curve_psnr_drop": final.get("curve_psnr_drop"),
+                 "nonfinite_steps": int(final.get("nonfinite_steps", 0))})
     return rows
 
 
@@ -133,7 +139,9 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "code_version": tags.get("code_version")}
     final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": metrics.get("final_ssim"),
              "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
-             "lpips_status": params.get("splat.lpips")}
+             "lpips_status": params.get("splat.lpips"), "degraded": tags.get("degraded") == "true",
+             "curve_psnr_drop": metrics.get("curve_psnr_drop"),
+             "nonfinite_steps": metrics.get("nonfinite_steps")}
     history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
                for key in ("test_psnr", "test_ssim", "per_candidate_ms", "selection_seconds")}
     picks = list(history["per_candidate_ms"].values())

@@ -52,9 +52,28 @@ class Progress:
         eta = sum(self.job_seconds) / len(self.job_seconds) * left / self.slots  # jobs alike, slots full
         running = min(left, self.slots)
         print(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
-              f"ETA {eta / 60:.1f} min | {job['method']} on {job['scene']} (seed {job['seed']}"
-              f"{', ' + job['setting'] if job['setting'] else ''}): {outcome['status']} "
+              f"ETA {eta / 60:.1f} min | {job_label(job)}: {outcome['status']} "
               f"{_headline(outcome)}", flush=True)
+        self.degraded(job, outcome)
+
+
+    def round(self, job: dict, message: dict) -> None:
+        """One line per finished round of a running job."""
+        what = "final" if message["final"] else f"round {message['round']}/{message['rounds']}"
+        print(f"[{self.name}] {job_label(job)}: {what}, {message['num_views']} views, "
+              f"PSNR {message['psnr']:.2f} dB, {message['seconds']:.0f} s", flush=True)
+
+    def degraded(self, job: dict, outcome: dict) -> None:
+        final = ((outcome.get("result") or {}).get("final")) or {}
+        if final.get("degraded"):
+            print(f"[{self.name}] warning: {job_label(job)} ended on a degraded model: final PSNR "
+                  f"{final['curve_psnr_drop']:.2f} dB below its last round on the same views "
+                  "(flagged in the records, MLflow tag degraded=true)", flush=True)
+
+
+def job_label(job: dict) -> str:
+    setting = f", {job['setting']}" if job.get("setting") else ""
+    return f"{job['method']} on {job['scene']} (seed {job['seed']}{setting})"
 
 
 def _headline(outcome: dict) -> str:
@@ -144,7 +163,15 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
             progress.slots = getattr(executor, "slots", 1)
             progress.update(job, outcome)
 
-        executor.map(todo, scenes, on_done)
+        def on_round(job: dict, message: dict) -> None:
+            progress.round(job, message)
+            try:
+                tracker.log_round(job, message)
+            except Exception as err:  # tracking trouble must not stop the sweep
+                print(f"[{cfg.name}] warning: tracking a round failed for {job['config_hash']}: {err}",
+                      flush=True)
+
+        executor.map(todo, scenes, on_done, on_round)
     summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
                            len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri)
     tracker.end(asdict(summary))

@@ -4,7 +4,8 @@ Only the driver talks to MLflow. The default store is embedded: ``sqlite:///<out
 with artifacts under ``<output_dir>/mlartifacts`` (no server); ``uri=http://host:port`` logs to a
 tracking server. Child runs carry the tags method, dataset, scene, protocol, seed, config_hash and
 ``mlflow.parentRunId``; params are the flattened job config; per-round metrics use step = number
-of views, so the UI draws PSNR-vs-views curves.
+of views, so the UI draws PSNR-vs-views curves. A job's child run opens with its first round
+message (``log_round``, while the job runs) and is completed by ``log_job`` when it ends.
 """
 
 from __future__ import annotations
@@ -44,6 +45,9 @@ class NoTracker:
     def start(self, sweep_config: dict, jobs: int) -> None:
         pass
 
+    def log_round(self, job: dict, message: dict) -> None:
+        pass
+
     def log_job(self, job: dict, outcome: dict) -> str | None:
         return None
 
@@ -66,6 +70,8 @@ class MlflowTracker:
         else:
             self.experiment_id = found.experiment_id
         self.parent: str | None = None
+        self.live: dict[str, str] = {}           # config hash -> child run opened by a round message
+        self.live_steps: dict[str, set[int]] = {}  # steps (views) already logged live per job
 
     def finished_hashes(self) -> set[str]:
         hashes, token = set(), None
@@ -100,28 +106,58 @@ class MlflowTracker:
         for i in range(0, len(items), 1000):
             self.client.log_batch(run_id, metrics=items[i:i + 1000])
 
-    def log_job(self, job: dict, outcome: dict) -> str:
+    def _child_run(self, job: dict) -> str:
+        """The job's child run: the one its round messages opened, else a new one."""
+        if job["config_hash"] in self.live:
+            return self.live[job["config_hash"]]
         tags = {k: str(job.get(k)) for k in TAGS}
-        tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or "",
-                     "attempts": str(outcome.get("attempts"))})
+        tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or ""})
         run = self.client.create_run(self.experiment_id, run_name=f"{job['method']} {job['scene']} s{job['seed']}",
                                      tags=tags)
-        run_id = run.info.run_id
-        self._log_params(run_id, job_params(job))
+        self._log_params(run.info.run_id, job_params(job))
+        return run.info.run_id
+
+    def log_round(self, job: dict, message: dict) -> None:
+        """A round of a running job: its metrics at step = views, in the job's (open) child run."""
+        if job["config_hash"] not in self.live:
+            self.live[job["config_hash"]] = self._child_run(job)
+            self.live_steps[job["config_hash"]] = set()
+        run_id, step = self.live[job["config_hash"]], message["num_views"]
+        metrics = [("test_psnr", message["psnr"], step), ("test_ssim", message["ssim"], step),
+                   ("num_gaussians", message["num_gaussians"], step)]
+        if message["selected"]:
+            metrics += [("per_candidate_ms", message["per_candidate_ms"], step),
+                        ("selection_seconds", message["selection_seconds"], step)]
+        self._log_metrics(run_id, metrics)
+        self.live_steps[job["config_hash"]].add(step)
+
+    def log_job(self, job: dict, outcome: dict) -> str:
+        run_id = self._child_run(job)
+        logged = self.live_steps.pop(job["config_hash"], set())
+        self.live.pop(job["config_hash"], None)
+        tags = {"attempts": str(outcome.get("attempts"))}
+        final = (outcome.get("result") or {}).get("final") or {}
+        if "degraded" in final:  # the final model fell > 3 dB below its last round (see records)
+            tags["degraded"] = str(bool(final["degraded"])).lower()
+        for key, value in tags.items():
+            self.client.set_tag(run_id, key, value)
         if outcome["status"] == "FINISHED":
-            self._log_metrics(run_id, self._metrics(job, outcome))
+            self._log_metrics(run_id, self._metrics(job, outcome, logged))
         self._log_artifacts(run_id, job, outcome)
         self.client.set_terminated(run_id, outcome["status"])
         return run_id
 
     @staticmethod
-    def _metrics(job: dict, outcome: dict) -> list[tuple[str, float, int]]:
+    def _metrics(job: dict, outcome: dict, logged: set[int] = frozenset()) -> list[tuple[str, float, int]]:
+        """Final metrics, and the round metrics of steps not already logged live."""
         result = outcome["result"]
         if job["kind"] == "uncertainty":
             return [(f"ause_{name}", v, 0) for name, v in result["ause"].items()]
         out = []
         for r in result["rounds"]:
             step = r["num_views"]
+            if step in logged:
+                continue
             out += [("test_psnr", r["test_psnr"], step), ("test_ssim", r["test_ssim"], step),
                     ("num_gaussians", r["num_gaussians"], step)]
             if r["selected"]:
@@ -129,7 +165,9 @@ class MlflowTracker:
                         ("selection_seconds", r["selection_seconds"], step)]
         final = result["final"]
         out += [("final_psnr", final["psnr"], 0), ("final_ssim", final["ssim"], 0),
-                ("wall_seconds", outcome.get("seconds"), 0)]
+                ("wall_seconds", outcome.get("seconds"), 0),
+                ("curve_psnr_drop", final.get("curve_psnr_drop"), 0),
+                ("nonfinite_steps", final.get("nonfinite_steps", 0), 0)]
         if final["lpips"] is not None:
             out.append(("final_lpips", final["lpips"], 0))
         return out

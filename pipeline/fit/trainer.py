@@ -2,12 +2,18 @@
 
 ``Trainer`` is stateful so the active loop can train, add views, reset opacities and continue
 with the same optimizer and schedules; ``fit`` is the one-shot convenience wrapper.
+
+A step whose loss or gradient is not finite never reaches the parameters: it is skipped and
+counted, the state that produced it (parameters, camera, target) is saved for reproduction when the
+trainer has a ``nonfinite_dir``, and more than ``NONFINITE_STEP_LIMIT`` such steps raise
+``NonFiniteTraining`` naming the step, the view and the saved file.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -18,6 +24,13 @@ from pipeline.fit.config import FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
 from pipeline.fit.losses import photometric_loss, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
+
+
+NONFINITE_STEP_LIMIT = 10
+
+
+class NonFiniteTraining(RuntimeError):
+    """Too many training steps had a non-finite loss or gradient."""
 
 
 def scene_extent(cameras: Cameras) -> float:
@@ -39,8 +52,10 @@ class Trainer:
 
     def __init__(self, gaussians: Gaussians, cameras: Cameras, images: Tensor, config: FitConfig,
                  background: Tensor | None = None, extent: float | None = None,
-                 render_settings: RenderSettings = RenderSettings()):
+                 render_settings: RenderSettings = RenderSettings(), nonfinite_dir: Path | None = None):
         self.config = config
+        self.nonfinite_dir = nonfinite_dir
+        self.nonfinite_steps = 0  # skipped steps (non-finite loss or gradient)
         self.settings = render_settings
         self.background = background if background is not None else images.new_zeros(3)
         self.extent = extent if extent is not None else scene_extent(cameras)
@@ -92,7 +107,8 @@ class Trainer:
         return {"params": {k: v.detach().clone() for k, v in self.params.items()},
                 "optimizer": self.optimizer.state_dict(), "step": self.step, "extent": self.extent,
                 "generator": self.generator.get_state(), "order": list(self._order),
-                "stats": [self.stats.grad_sum, self.stats.count, self.stats.max_radii]}
+                "stats": [self.stats.grad_sum, self.stats.count, self.stats.max_radii],
+                "nonfinite_steps": self.nonfinite_steps}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a ``state_dict`` (the views are set separately, before this call)."""
@@ -105,6 +121,7 @@ class Trainer:
         self.step, self.extent = int(state["step"]), float(state["extent"])
         self.generator.set_state(state["generator"])
         self.stats = DensifyStats(*[t.clone() for t in state["stats"]])
+        self.nonfinite_steps = int(state.get("nonfinite_steps", 0))
         self._order = order
 
     def reset_opacity(self, value: float | None = None) -> None:
@@ -128,12 +145,48 @@ class Trainer:
         loss = photometric_loss(image, target, cfg.ssim_weight)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if not self._finite(loss):
+            self._skip(view, float(loss.detach()))
+            self._density_control()  # keeps periodic events on their schedule
+            return StepInfo(self.step, float("nan"), float("nan"), self.params["means"].shape[0])
         if self.step < dcfg.stop:
             self.stats.update(means2d.grad.detach(), out.radii[0], cams.width, cams.height)
         self.optimizer.step()
         self._density_control()
         return StepInfo(self.step, float(loss.detach()), float(psnr(image.detach(), target)),
                         self.params["means"].shape[0])
+
+    def _finite(self, loss: Tensor) -> bool:
+        if not bool(torch.isfinite(loss)):
+            return False
+        return all(bool(torch.isfinite(p.grad).all()) for p in self.params.values() if p.grad is not None)
+
+    def _skip(self, view: int, loss: float) -> None:
+        """Drop this step's gradients, count it, save what produced it; raise past the limit."""
+        self.optimizer.zero_grad(set_to_none=True)
+        self.nonfinite_steps += 1
+        saved = self._save_nonfinite_case(view, loss)
+        where = f"saved to {saved}" if saved else "not saved (no folder given)"
+        if self.nonfinite_steps > NONFINITE_STEP_LIMIT:
+            raise NonFiniteTraining(
+                f"training step {self.step} (view {view}): non-finite loss or gradient in "
+                f"{self.nonfinite_steps} steps, more than the limit of {NONFINITE_STEP_LIMIT}; the "
+                f"last case is {where}")
+
+    def _save_nonfinite_case(self, view: int, loss: float) -> Path | None:
+        """The parameters and camera of a skipped step, in the layout of the regression cases."""
+        if self.nonfinite_dir is None:
+            return None
+        folder = Path(self.nonfinite_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"nonfinite_step{self.step:06d}.pt"
+        cams = self.cameras[view]
+        torch.save({"gaussians": {k: v.detach().clone() for k, v in self.params.items()},
+                    "viewmats": cams.viewmats, "Ks": cams.Ks, "width": cams.width,
+                    "height": cams.height, "background": self.background, "target": self.images[view],
+                    "sh_degree": self.active_sh_degree, "settings": repr(self.settings),
+                    "step": self.step, "view": view, "loss": loss}, path)
+        return path
 
     def gaussians_for_grad(self) -> Gaussians:
         return Gaussians(**self.params)

@@ -43,6 +43,16 @@ def _finished(frame: pd.DataFrame, kind: str, job_kind: str) -> pd.DataFrame:
     return frame[ok & (frame["kind"] == kind) & (frame["job_kind"] == job_kind)]
 
 
+def degraded_jobs(final: pd.DataFrame) -> list[str]:
+    """'method on scene (seed s): -x.xx dB' for every finished episode flagged ``degraded``."""
+    if "degraded" not in final:
+        return []
+    bad = final[final["degraded"].fillna(False).astype(bool)]
+    return [f"{r['method']} on {r['scene']} (seed {r['seed']}"
+            f"{', ' + r['setting'] if r.get('setting') else ''}): final PSNR "
+            f"{r['curve_psnr_drop']:.2f} dB below its last round" for _, r in bad.iterrows()]
+
+
 def episode_tables(frame: pd.DataFrame, title: str) -> list[Table]:
     final = _finished(frame, "final", "episode")
     if final.empty:
@@ -51,10 +61,17 @@ def episode_tables(frame: pd.DataFrame, title: str) -> list[Table]:
     if (final["setting"].fillna("") != "").any():
         final = final.assign(row=[f"{m}, {s}" if len(methods) > 1 else s
                                   for m, s in zip(final["method"], final["setting"])])
-        return [build_table(final, title, "row", None,
-                            ["psnr", "ssim", "per_candidate_ms", "selection_seconds"])]
-    final = final.rename(columns={"method": "Method"})
-    return [build_table(final, title, "Method", "dataset", ["psnr", "ssim", "lpips"], methods)]
+        table = build_table(final, title, "row", None,
+                            ["psnr", "ssim", "per_candidate_ms", "selection_seconds"])
+    else:
+        table = build_table(final.rename(columns={"method": "Method"}), title, "Method", "dataset",
+                            ["psnr", "ssim", "lpips"], methods)
+    bad = degraded_jobs(final)
+    if bad:
+        table.notes.append(f"{len(bad)} job(s) in these cells ended on a degraded model (final PSNR "
+                           f"more than 3 dB below the last round's on the same views): "
+                           + "; ".join(bad))
+    return [table]
 
 
 def ause_table(frame: pd.DataFrame, title: str) -> list[Table]:
@@ -104,7 +121,7 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
     final = frame[frame["kind"] == "final"]
     cols = [c for c in ("sweep", "method", "dataset", "scene", "seed", "setting", "config_hash", "run_id",
-                        "status", "psnr", "attempts", "code_version") if c in final]
+                        "status", "psnr", "degraded", "attempts", "code_version") if c in final]
     return final[cols].sort_values(["method", "dataset", "scene", "seed"]).reset_index(drop=True)
 
 
