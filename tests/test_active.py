@@ -131,3 +131,38 @@ def test_uncertainty_experiment_gives_curves_and_ause(scene_dir):
     assert out["ause"]["oracle"] == 0 and all(v >= -1e-12 for v in out["ause"].values())
     assert len(out["psnr"]) == len(out["test_ids"]) == 8
     assert out["variance_maps"].shape == (2, 32, 32, 3) and bool((out["variance_maps"] >= 0).all())
+
+
+class Killed(Exception):
+    pass
+
+
+@pytest.mark.parametrize("changes", [{"strategy": "random"},
+                                     {"strategy": "fisherrf", "pool_keep_fraction": 0.5},
+                                     {"strategy": "random", "post_selection": "reload"}],
+                         ids=["random", "pool_reduction", "reload"])
+def test_killed_episodes_that_draw_random_numbers_resume_to_the_uninterrupted_result(
+        scene_dir, tmp_path, changes):
+    """Strategies and policies that draw from the episode's generators: the checkpoint must carry
+    them, or the resumed picks differ."""
+    cfg = tiny_episode(**changes, protocol=ProtocolConfig(initial_views=2, budget=5, probes=3))
+    uninterrupted = run_episode(load(scene_dir, cfg), cfg)
+    for kill_at in (0, 1):
+        folder = tmp_path / f"kill{kill_at}"
+
+        def kill(rec):
+            if rec.round == kill_at:
+                raise Killed
+
+        with pytest.raises(Killed):
+            run_episode(load(scene_dir, cfg), cfg, folder, on_round=kill)
+        resumed = run_episode(load(scene_dir, cfg), cfg, folder)
+        assert resumed.selected == uninterrupted.selected, f"picks after a kill at round {kill_at}"
+        assert comparable(resumed) == comparable(uninterrupted), f"killed at round {kill_at}"
+
+
+def test_an_unreadable_checkpoint_is_a_clear_error(scene_dir, tmp_path):
+    cfg = tiny_episode(strategy="random")
+    (tmp_path / "episode.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match=r"episode.pt: unreadable checkpoint.*delete it"):
+        run_episode(load(scene_dir, cfg), cfg, tmp_path)

@@ -120,6 +120,10 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
     from_mlflow = records_from_mlflow(summary.tracking_uri, "demo")
     assert sorted(from_mlflow[from_mlflow["kind"] == "final"]["psnr"].round(6)) == \
         sorted(ray_records[ray_records["kind"] == "final"]["psnr"].round(6))
+    # the report built from MLflow is the report built from the records file (LPIPS note included)
+    mlflow_report = make_report(ray_dir, tmp_path / "report_mlflow", frame=from_mlflow)
+    assert mlflow_report["tables"] == report["tables"]
+    assert "LPIPS disabled in the config" in report["tables"]
 
 
 def test_relaunch_skips_finished_jobs_and_runs_only_new_ones(base, capsys):
@@ -157,7 +161,8 @@ def broken_scene(good: Path, folder: Path) -> Path:
 
 def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
     out = base / "failing"
-    cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "job.retries=1"])
+    cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "job.retries=1",
+                    "tracking=mlflow"])
     run_sweep(cfg)  # generates the good scene and runs it
     good = Path(expand_jobs(cfg)[0]["scene_path"])
     broken_scene(good, out / "data" / "broken")
@@ -174,6 +179,17 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
     assert "traceback" in (out / "jobs" / hash_ / "artifacts" / "traceback.txt").read_text().lower()
     log = (out / "jobs" / hash_ / "log.txt").read_text()
     assert "attempt 1/2 failed" in log and "attempt 2/2 failed" in log
+    # repaired and relaunched: exactly the two FAILED jobs run again, and now finish
+    import shutil
+    shutil.rmtree(out / "data" / "broken")
+    shutil.copytree(good, out / "data" / "broken")
+    again = run_sweep(cfg)
+    assert (again.skipped, again.finished, again.failed) == (2, 2, 0)
+    frame = RecordsFile(out).frame.query("kind == 'final'")
+    assert len(frame) == 4 and set(frame["status"]) == {"FINISHED"}
+    assert set(failed["config_hash"]) <= set(frame["config_hash"])
+    (out / "records.parquet").unlink()  # MLflow alone now knows all four as FINISHED
+    assert run_sweep(cfg).skipped == 4
 
 
 def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):

@@ -136,10 +136,11 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "scene": tags.get("scene"), "method": tags.get("method"), "strategy": tags.get("strategy"),
             "protocol": tags.get("protocol"), "seed": int(tags.get("seed", 0)),
             "setting": tags.get("setting", ""), "axes": params.get("axes", "{}"),
-            "code_version": tags.get("code_version")}
+            "code_version": tags.get("code_version"),
+            "job_index": int(tags["job_index"]) if "job_index" in tags else None}
     final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": metrics.get("final_ssim"),
              "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
-             "lpips_status": params.get("splat.lpips"), "degraded": tags.get("degraded") == "true",
+             "lpips_status": tags.get("lpips_status"), "degraded": tags.get("degraded") == "true",
              "curve_psnr_drop": metrics.get("curve_psnr_drop"),
              "nonfinite_steps": metrics.get("nonfinite_steps")}
     history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}

@@ -139,6 +139,10 @@ class MlflowTracker:
         final = (outcome.get("result") or {}).get("final") or {}
         if "degraded" in final:  # the final model fell > 3 dB below its last round (see records)
             tags["degraded"] = str(bool(final["degraded"])).lower()
+        if "lpips_status" in final:  # why LPIPS is (un)available, read back by records_from_mlflow
+            tags["lpips_status"] = str(final["lpips_status"])[:5000]
+        if job.get("index") is not None:  # the config's job order, which the report keeps
+            tags["job_index"] = str(job["index"])
         for key, value in tags.items():
             self.client.set_tag(run_id, key, value)
         if outcome["status"] == "FINISHED":
