@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-.PHONY: env demo test bench
+.PHONY: env demo test test-fast bench
 env: $(STAMP)
 
 # The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
@@ -23,6 +23,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The quick loop: every module with its oracles, without the tests marked slow (real-data fits,
+# Ray/MLflow integration sweeps, kill-and-resume episodes). The full suite is `make test`.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python -m pipeline.bench render

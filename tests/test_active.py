@@ -141,6 +141,7 @@ class Killed(Exception):
                                      {"strategy": "fisherrf", "pool_keep_fraction": 0.5},
                                      {"strategy": "random", "post_selection": "reload"}],
                          ids=["random", "pool_reduction", "reload"])
+@pytest.mark.slow
 def test_killed_episodes_that_draw_random_numbers_resume_to_the_uninterrupted_result(
         scene_dir, tmp_path, changes):
     """Strategies and policies that draw from the episode's generators: the checkpoint must carry

@@ -87,6 +87,7 @@ def metrics_of(frame):
     return final[["method", "psnr", "ssim", "selected"]].to_dict("records"), rounds["psnr"].tolist()
 
 
+@pytest.mark.slow
 def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_session, tmp_path):
     common = ["experiment=demo", *TINY]
     ray_dir, local_dir = base / "demo_ray", base / "demo_local"
@@ -126,6 +127,7 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
     assert "LPIPS disabled in the config" in report["tables"]
 
 
+@pytest.mark.slow
 def test_relaunch_skips_finished_jobs_and_runs_only_new_ones(base, capsys):
     out = base / "resume"
     common = ["experiment=debug", *TINY, f"output_dir={out}", "executor=local", "tracking=mlflow"]
@@ -159,6 +161,7 @@ def broken_scene(good: Path, folder: Path) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
     out = base / "failing"
     cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "job.retries=1",
@@ -192,6 +195,7 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
     assert run_sweep(cfg).skipped == 4
 
 
+@pytest.mark.slow
 def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):
     port = free_port()
     server = subprocess.Popen(
@@ -240,6 +244,7 @@ def test_code_version_names_the_commit_and_uncommitted_changes(tmp_path):
     assert stale_versions({"h1": "a", "h2": "b", "h3": "b", "h4": None}, "a") == {"b": 2, "unrecorded": 1}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("executor", ["local", "ray"])
 def test_round_progress_reaches_the_driver_and_mlflow_while_jobs_run(executor, base, ray_session,
                                                                     capsys):

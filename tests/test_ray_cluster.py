@@ -14,6 +14,7 @@ from tests.conftest import free_port
 BIN = Path(sys.executable).parent
 
 
+@pytest.mark.slow
 def test_a_sweep_joins_a_running_ray_cluster(tmp_path):
     ray_bin = BIN / "ray"
     if not ray_bin.exists():
