@@ -28,7 +28,7 @@ JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol"}
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips"}
-NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version")
+NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")
 
 
 class ConfigError(ValueError):

@@ -1,0 +1,108 @@
+"""The command-line contracts: exit codes of pipeline-run and pipeline-report, what the config
+hash covers (and a pinned golden value), and the Ray executor starting and stopping its own Ray."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from pipeline.data.synthetic import generate
+from pipeline.experiment.app import CONF_DIR
+from pipeline.experiment.build import config_hash, expand_jobs
+
+BIN = Path(sys.executable).parent
+TINY = ["experiment=debug", "splat.iterations=60", "protocol.budget=3", "protocol.probes=2",
+        "dataset.generated.generate.size=24", "dataset.generated.generate.n_train=8",
+        "dataset.generated.generate.n_test=4"]
+
+
+def composed(overrides):
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides)
+
+
+def first_job(*overrides):
+    return expand_jobs(composed(["experiment=debug", "method=[gopre]", *overrides]))[0]
+
+
+def test_config_hash_ignores_where_and_how_a_job_runs():
+    base = first_job()["config_hash"]
+    for override in ("output_dir=/elsewhere/out", "data_root=/some/data", "job.threads=2",
+                     "job.device=cuda", "job.retries=5", "executor=ray", "tracking=mlflow",
+                     "name=another_sweep"):
+        assert first_job(override)["config_hash"] == base, override
+
+
+def test_config_hash_changes_with_anything_computed():
+    base = first_job()["config_hash"]
+    for override in ("seeds=[1]", "splat.iterations=100", "splat.epochs_per_view=3",
+                     "protocol.budget=5", "protocol.probes=3", "method.gopre.options.tau=0.5",
+                     "splat.post_selection=continue", "dataset.generated.generate.seed=1",
+                     "job.renders=2"):
+        assert first_job(override)["config_hash"] != base, override
+
+
+def test_config_hash_golden_value():
+    """Pinned: a change here means every finished job of every existing sweep would be rerun (or
+    a changed job skipped). Update it only on purpose, and say so in the change."""
+    assert first_job()["config_hash"] == "5b06dfba81dfd51f"
+
+
+def test_config_hash_is_the_hash_of_the_job_without_execution_keys():
+    job = first_job()
+    moved = {**job, "execution": {"threads": 99}, "scene_path": "/x", "index": 7, "code_version": "z",
+             "sweep": "other"}  # and its own config_hash key: recomputing gives the same value
+    assert config_hash(moved) == job["config_hash"]
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run([*args], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def test_pipeline_run_exits_2_on_a_config_error_naming_the_key(tmp_path):
+    res = run_cli(str(BIN / "pipeline-run"), *TINY, "method.gopre.options.tau=-1",
+                  f"output_dir={tmp_path / 'o'}")
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert "method.gopre" in res.stderr and "tau" in res.stderr
+    assert not (tmp_path / "o" / "jobs").exists()  # no job started
+
+
+@pytest.mark.slow
+def test_pipeline_run_exit_status_is_the_number_of_failed_jobs(tmp_path):
+    good = generate(tmp_path / "scenes" / "good", seed=0, size=24, n_train=8, n_test=4)
+    broken = tmp_path / "scenes" / "broken"
+    shutil.copytree(good, broken)
+    for png in sorted((broken / "train").glob("r_*.png"))[1:]:
+        png.write_bytes(b"not a png")
+    common = [str(BIN / "pipeline-run"), *TINY, "job.retries=0", f"dataset.generated.root={tmp_path / 'scenes'}",
+              "dataset.generated.generate=null", f"output_dir={tmp_path / 'o'}"]
+    res = run_cli(*common, "dataset.generated.scenes=[good,broken]", "method=[random,coverage]")
+    assert res.returncode == 2, res.stdout[-2000:] + res.stderr[-2000:]  # the two broken jobs
+    res = run_cli(*common, "dataset.generated.scenes=[good]", "method=[random,coverage]")
+    assert res.returncode == 0 and "skipped 2" in res.stdout
+
+
+def test_pipeline_report_exit_codes(tmp_path):
+    report = str(BIN / "pipeline-report")
+    missing = run_cli(report, str(tmp_path / "nowhere"))
+    assert missing.returncode == 1 and "no records file" in missing.stderr
+    half = run_cli(report, "--mlflow-uri", f"sqlite:///{tmp_path / 'm.db'}")
+    assert half.returncode == 2 and "--experiment" in half.stderr
+    nothing = run_cli(report)
+    assert nothing.returncode == 2 and "sweep folder" in nothing.stderr
+    unknown = run_cli(report, "--mlflow-uri", f"sqlite:///{tmp_path / 'm.db'}", "--experiment", "nope")
+    assert unknown.returncode == 1 and "nope" in unknown.stderr
+
+
+@pytest.mark.slow
+def test_the_ray_executor_starts_its_own_ray_and_shuts_it_down(tmp_path):
+    ray = pytest.importorskip("ray")
+    assert not ray.is_initialized()
+    from pipeline.experiment.sweep import run_sweep
+    summary = run_sweep(composed([*TINY, "method=[random]", "executor=ray", "tracking=none",
+                                  f"output_dir={tmp_path / 'o'}"]))
+    assert summary.finished == 1
+    assert not ray.is_initialized()  # started for the sweep, stopped after it
