@@ -1,5 +1,7 @@
 """Training: losses, density control and end-to-end fits that must clear a PSNR bar."""
 
+import math
+
 import pytest
 import torch
 
@@ -185,3 +187,76 @@ def test_a_non_finite_step_is_skipped_saved_counted_and_fails_past_the_limit(tmp
     with pytest.raises(trainer_module.NonFiniteTraining, match=r"step \d+ \(view \d\).*nonfinite_step"):
         for _ in range(trainer_module.NONFINITE_STEP_LIMIT + 1):
             t.train_step()
+
+
+def _params_and_adam(means, log_scales, quats, logits):
+    """A parameter dict with one named Adam group each, and non-zero Adam moments per row."""
+    n = means.shape[0]
+    params = {"means": means, "log_scales": log_scales, "quats": quats, "logit_opacities": logits,
+              "sh0": torch.zeros(n, 1, 3), "shN": torch.zeros(n, 3, 3)}
+    params = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    opt = torch.optim.Adam([{"params": [p], "lr": 1e-3, "name": k} for k, p in params.items()])
+    for k, p in params.items():  # moments that identify their row: exp_avg = row index + 1
+        rows = torch.arange(1, n + 1, dtype=p.dtype).reshape(-1, *[1] * (p.ndim - 1)).expand_as(p)
+        opt.state[p] = {"step": torch.tensor(1.0), "exp_avg": rows.clone(), "exp_avg_sq": rows.clone()}
+    return params, opt
+
+
+def test_clone_and_split_keep_moments_of_kept_rows_and_zero_new_ones():
+    """Row 0 small (cloned), row 1 big (split into 2), row 2 idle: kept rows keep their Adam
+    moments, new rows start at zero, and split parents are replaced by their children."""
+    means = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    log_scales = torch.log(torch.tensor([[0.001] * 3, [0.5, 0.1, 0.1], [0.001] * 3]))
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 3)
+    params, opt = _params_and_adam(means, log_scales, quats, torch.zeros(3))
+    stats = DensifyStats(torch.tensor([1.0, 1.0, 0.0]), torch.ones(3), torch.zeros(3))
+    cfg = DensifyConfig(min_opacity=0.0, grad_threshold=0.5, percent_dense=0.01, split_count=2)
+    out = densify_and_prune(params, opt, stats, cfg, extent=1.0, prune_large=False,
+                            generator=torch.Generator().manual_seed(0))
+    # rows: kept originals 0 and 2, then the clone of 0, then the two children of 1
+    assert out["means"].shape[0] == 5
+    assert torch.equal(out["means"][:2], means[[0, 2]]) and torch.equal(out["means"][2], means[0])
+    exp_avg = opt.state[out["means"]]["exp_avg"][:, 0]
+    assert exp_avg.tolist() == [1.0, 3.0, 0.0, 0.0, 0.0]  # kept rows 0 and 2 keep theirs
+    children = out["log_scales"][3:]
+    torch.testing.assert_close(children, log_scales[1].expand(2, 3) - math.log(1.6))
+    for group in opt.param_groups:
+        assert group["params"][0] is out[group["name"]]
+
+
+def test_split_children_are_drawn_from_the_parent_gaussian():
+    """Many children of one rotated, anisotropic parent: their positions have the parent's mean
+    and covariance R S^2 R^T (rotation from scipy, not from the code under test)."""
+    from scipy.spatial.transform import Rotation
+    q = torch.tensor([[0.8, 0.3, -0.4, 0.33]])
+    scales = torch.tensor([[0.4, 0.1, 0.05]])
+    params, opt = _params_and_adam(torch.tensor([[1.0, -2.0, 0.5]]), torch.log(scales), q, torch.zeros(1))
+    k = 4000
+    cfg = DensifyConfig(min_opacity=0.0, grad_threshold=0.5, split_count=k, max_gaussians=None)
+    stats = DensifyStats(torch.ones(1), torch.ones(1), torch.zeros(1))
+    out = densify_and_prune(params, opt, stats, cfg, extent=1.0, prune_large=False,
+                            generator=torch.Generator().manual_seed(1))
+    pts = out["means"].detach().double()
+    assert pts.shape[0] == k
+    r = torch.from_numpy(Rotation.from_quat((q[0, [1, 2, 3, 0]] / q.norm()).numpy()).as_matrix())
+    cov = r @ torch.diag(scales[0].double() ** 2) @ r.T
+    torch.testing.assert_close(pts.mean(0), torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64),
+                               rtol=0, atol=0.02)
+    torch.testing.assert_close(torch.cov(pts.T), cov, rtol=0, atol=0.012)
+
+
+def test_both_prune_rules():
+    """Transparent Gaussians always go; too large ones (screen radius or world scale) only after
+    the first opacity reset (prune_large)."""
+    means = torch.zeros(4, 3)
+    log_scales = torch.log(torch.tensor([[0.01] * 3, [0.01] * 3, [0.01] * 3, [0.5, 0.01, 0.01]]))
+    logits = torch.logit(torch.tensor([0.5, 0.001, 0.5, 0.5]))
+    params, opt = _params_and_adam(means, log_scales, torch.tensor([[1.0, 0, 0, 0]] * 4), logits)
+    stats = DensifyStats(torch.zeros(4), torch.ones(4), torch.tensor([1.0, 1.0, 50.0, 1.0]))
+    cfg = DensifyConfig(min_opacity=0.005, max_screen_radius=20.0, max_world_scale=0.1)
+    kept = densify_and_prune(params, opt, stats, cfg, extent=1.0, prune_large=False)
+    assert kept["logit_opacities"].shape[0] == 3  # only the transparent one (row 1)
+    params, opt = _params_and_adam(means, log_scales, torch.tensor([[1.0, 0, 0, 0]] * 4), logits)
+    kept = densify_and_prune(params, opt, stats, cfg, extent=1.0, prune_large=True)
+    assert kept["means"].shape[0] == 1  # row 2 (radius 50 px) and row 3 (scale 0.5 > 0.1) go too
+    assert opt.state[kept["means"]]["exp_avg"][0, 0] == 1.0  # the survivor is row 0
