@@ -117,3 +117,47 @@ def test_images_of_inconsistent_size_are_named(tmp_path, small_scene):
     scene.split("train").images[0]
     with pytest.raises(DataError, match="r_1.png.*inconsistent"):
         scene.split("train").images[1]
+
+
+def hand_made_blender_scene(root, c2w, rgba):
+    """One train frame with an explicit OpenGL camera-to-world and one RGBA image."""
+    from PIL import Image
+    (root / "train").mkdir(parents=True)
+    Image.fromarray(rgba, "RGBA").save(root / "train" / "r_0.png")
+    frames = [{"file_path": "./train/r_0", "transform_matrix": c2w}]
+    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.9, "frames": frames}))
+    return root
+
+
+def test_blender_opengl_pose_becomes_opencv_world_to_camera(tmp_path):
+    """A camera at (0, -4, 0) looking along +y with +z up (OpenGL: it looks down its -z axis and
+    its +y is up). In OpenCV terms it looks along world +y, image right is world +x and image
+    down is world -z, so the world point (0, 0, 0) is straight ahead at depth 4 and (1, 0, -0.5)
+    lands right of and below the centre."""
+    import numpy as np
+    c2w = [[1, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0], [0, 0, 0, 1]]
+    scene = read_blender(hand_made_blender_scene(tmp_path / "s", c2w, np.zeros((8, 8, 4), np.uint8)))
+    cams = scene.split("train").cameras
+    expected = torch.tensor([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 4], [0, 0, 0, 1]], dtype=torch.float32)
+    torch.testing.assert_close(cams.viewmats[0], expected)
+    uv, depth = project(cams, torch.tensor([[0.0, 0, 0], [1.0, 0, -0.5]]))
+    assert depth[0].tolist() == pytest.approx([4.0, 4.0])
+    assert uv[0, 0].tolist() == pytest.approx([4.0, 4.0])  # the image centre
+    assert uv[0, 1, 0] > 4 and uv[0, 1, 1] > 4  # right and below
+
+
+def test_rgba_is_composited_over_a_non_white_background_exactly(tmp_path):
+    import numpy as np
+    rgba = np.zeros((4, 4, 4), np.uint8)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2], rgba[..., 3] = 200, 100, 50, 51  # alpha 0.2
+    rgba[0, 0, 3] = 0      # fully transparent: the background
+    rgba[1, 1, 3] = 255    # opaque: the colour
+    eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
+    background = (0.1, 0.7, 0.3)
+    scene = read_blender(hand_made_blender_scene(tmp_path / "s", eye, rgba), background=background)
+    image = scene.split("train").images.stack([0])[0].double()
+    colour = torch.tensor([200, 100, 50], dtype=torch.float64) / 255
+    bg = torch.tensor(background, dtype=torch.float64)
+    torch.testing.assert_close(image[0, 0], bg, rtol=0, atol=1e-6)
+    torch.testing.assert_close(image[1, 1], colour, rtol=0, atol=1e-6)
+    torch.testing.assert_close(image[2, 2], colour * 0.2 + bg * 0.8, rtol=0, atol=1e-6)

@@ -172,3 +172,25 @@ def test_cli_inspect_and_errors(tmp_path, capsys, generated):
     assert data_cli(["inspect", str(broken)]) == 1
     err = capsys.readouterr().err
     assert "transforms_train.json" in err and "malformed" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("line", ["1 SIMPLE_PINHOLE 80 60 50 41 29", "1 SIMPLE_RADIAL 80 60 50 41 29 0",
+                                  "1 OPENCV 80 60 50 50 41 29 0 0 0 0"])
+def test_simple_models_give_the_pinhole_intrinsics_for_equal_focal_lengths(tmp_path, line):
+    """The model folder is 80x60 and the image 40x30: every intrinsic halves, for every model."""
+    pinhole = read_colmap(write_text_model(tmp_path / "p", "1 PINHOLE 80 60 50 50 41 29"))
+    other = read_colmap(write_text_model(tmp_path / "o", line))
+    k_pinhole, k_other = pinhole.split("all").cameras.Ks[0], other.split("all").cameras.Ks[0]
+    torch.testing.assert_close(k_other, k_pinhole)
+    torch.testing.assert_close(k_pinhole, torch.tensor([[25.0, 0, 20.5], [0, 25.0, 14.5], [0, 0, 1]]))
+
+
+def test_colmap_pose_is_world_to_camera_as_written(tmp_path):
+    """images.txt stores the world->camera rotation (qw qx qy qz) and translation: a camera turned
+    +90 degrees about z, moved by t, maps world points as R x + t."""
+    root = write_text_model(tmp_path / "s", "1 PINHOLE 80 60 50 50 40 30")
+    c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)
+    (root / "sparse" / "0" / "images.txt").write_text(f"1 {c} 0 0 {s} 1 2 3 1 a.png\n\n")
+    vm = read_colmap(root).split("all").cameras.viewmats[0].double()
+    expected = torch.tensor([[0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], dtype=torch.float64)
+    torch.testing.assert_close(vm, expected, rtol=0, atol=1e-6)
