@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-.PHONY: env demo test test-fast bench
+.PHONY: env demo test test-fast mutate bench
 env: $(STAMP)
 
 # The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
@@ -28,6 +28,14 @@ test: $(STAMP)
 # Ray/MLflow integration sweeps, kill-and-resume episodes). The full suite is `make test`.
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
+
+# Mutation testing of the core's formulas ([tool.mutmut] in pyproject.toml: which modules, which
+# oracle tests); resumable; `$(BIN)/mutmut results` lists the survivors, `mutmut show NAME` one diff.
+mutate: $(STAMP)
+	$(BIN)/pip install -q 'mutmut==3.8.1'
+	GOPRE_SHARED_DATA=$(abspath ../shared/data) GOPRE_TEST_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+		$(BIN)/mutmut run --max-children 2
+	$(BIN)/python tools/mutation_summary.py
 
 bench: $(STAMP)
 	$(BIN)/python -m pipeline.bench render

@@ -8,9 +8,14 @@ import torch
 SHARED_DATA = Path(os.environ.get("GOPRE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
+# Threads per test process: 2 (the machine's cores); `make mutate` sets 1, since mutmut forks its
+# workers from a process that must never have entered a parallel OpenMP region (fork-unsafe).
+TEST_THREADS = int(os.environ.get("GOPRE_TEST_THREADS", "2"))
+
+
 @pytest.fixture(autouse=True)
 def _threads():
-    torch.set_num_threads(2)
+    torch.set_num_threads(TEST_THREADS)
     yield
 
 

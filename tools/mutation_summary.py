@@ -1,0 +1,46 @@
+"""Per-module mutation score from mutmut's result files (mutants/**/*.py.meta).
+
+    .venv/bin/python tools/mutation_summary.py          # after `make mutate`
+
+Score = killed / (killed + survived + timeout + suspicious); mutants in functions that no selected
+test calls ("no tests") are counted separately, not in the score.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+KILLED, SURVIVED, NO_TESTS = {1, 3, 37}, {0}, {5, 33}
+
+
+def summary(root: Path = Path("mutants")) -> list[dict]:
+    rows = []
+    for meta in sorted(root.rglob("*.py.meta")):
+        codes = json.loads(meta.read_text())["exit_code_by_key"].values()
+        counts = Counter("killed" if c in KILLED else "survived" if c in SURVIVED else
+                         "no tests" if c in NO_TESTS else "not checked" if c is None else "other"
+                         for c in codes)
+        tested = counts["killed"] + counts["survived"] + counts["other"]
+        rows.append({"module": str(meta.relative_to(root))[:-len(".meta")], **counts,
+                     "score": round(counts["killed"] / tested, 3) if tested else None})
+    return rows
+
+
+def main() -> int:
+    rows = summary()
+    if not rows:
+        print("no mutmut results under mutants/ (run `make mutate` first)", file=sys.stderr)
+        return 1
+    print("| module | killed | survived | other | no tests | not checked | score |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['module']} | {r.get('killed', 0)} | {r.get('survived', 0)} | {r.get('other', 0)} | "
+              f"{r.get('no tests', 0)} | {r.get('not checked', 0)} | {r['score']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
