@@ -119,3 +119,11 @@ def test_the_guard_flags_a_model_reset_just_before_evaluation(scene_dir, monkeyp
 def test_a_round_that_trains_nothing_is_refused():
     with pytest.raises(ValueError, match="epochs_per_view"):
         tiny_episode(epochs_per_view=0)
+
+
+def test_schedule_record_round_trips():
+    s = episode_schedule(4, 20, 3, 25, 2000)
+    d = s.to_dict()
+    assert set(d) == {"round_views", "round_iterations", "final_iterations", "total"}
+    again = Schedule(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+    assert again == s

@@ -56,7 +56,6 @@ class Progress:
               f"{_headline(outcome)}", flush=True)
         self.degraded(job, outcome)
 
-
     def round(self, job: dict, message: dict) -> None:
         """One line per finished round of a running job."""
         what = "final" if message["final"] else f"round {message['round']}/{message['rounds']}"
