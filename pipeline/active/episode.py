@@ -6,8 +6,9 @@ until the budget -> final training -> evaluation. How long each phase trains is 
 recipe spans the iterations actually run. A final model that scores more than ``DEGRADED_DB``
 below the last round on the same views is flagged ``degraded`` in the final metrics.
 ``run_episode`` is a pure function of its inputs: it returns records and calls an optional
-per-round callback, it never logs or tracks. With a checkpoint folder it saves its state after every round and resumes from the last finished one,
-ending with the same result as an uninterrupted run.
+per-round callback, it never logs or tracks. With a checkpoint folder it saves its state after
+every round and resumes from the last finished one, ending with the same result as an
+uninterrupted run.
 """
 
 from __future__ import annotations
