@@ -204,3 +204,47 @@ def test_scores_in_small_candidate_blocks_equal_whole_pool_scores(ctx_parts, mon
     assert blocked.chosen == whole.chosen
     for k, v in whole.scores.items():
         assert blocked.scores[k] == pytest.approx(v, rel=1e-12)
+
+
+@pytest.mark.parametrize("name,options,match", [("gopre", {"tau": 0.0}, "tau must be positive"),
+                                                ("gopre", {"goal": "everything"}, "goal must be one of"),
+                                                ("popgs", {"variant": "full"}, "variant must be one of")])
+def test_bad_strategy_options_name_the_option(name, options, match):
+    with pytest.raises(ValueError, match=match):
+        make_strategy(name, **options)
+
+
+def test_popgs_block_greedy_batch_over_two_taken_views_matches_dense_blocks():
+    """Two taken views (H is their sum, not the last one) and a greedy batch of two: the first
+    pick's scores and the second pick follow the dense per-Gaussian blocks."""
+    from pipeline.splat import Gaussians, RenderSettings, render
+    from pipeline.splat.scenes import orbit_cameras
+    f64 = torch.float64
+    g = random_scene(8, seed=4, dtype=f64, sh_degree=0)
+    cams = orbit_cameras(5, 8, 8, dtype=f64, radius=2.4)
+    settings = RenderSettings(tile_size=4, chunk=4)
+    groups = ("means", "log_scales", "quats", "logit_opacities", "sh0")
+
+    def block(cam):
+        def fn(*sel):
+            params = dict(g.params())
+            params.update(dict(zip(groups, sel)))
+            return render(Gaussians(**params), cam, torch.ones(3, dtype=f64), settings=settings).rgb.reshape(-1)
+        js = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
+        j = torch.cat([j.reshape(j.shape[0], 8, -1) for j in js], 2)  # [O, N, 14]
+        return torch.einsum("onp,onq->npq", j, j)
+    blocks = [block(cams[i]) for i in range(5)]
+    lam = 1e-2
+    sigma_inv = blocks[0] + blocks[1] + lam * torch.eye(14, dtype=f64)
+
+    def gain(base, b):
+        return (torch.linalg.slogdet(base + b)[1] - torch.linalg.slogdet(base)[1]).sum().item()
+    first = {c: gain(sigma_inv, blocks[c]) for c in (2, 3, 4)}
+    best = max(first, key=first.get)
+    second = max((c for c in (2, 3, 4) if c != best), key=lambda c: gain(sigma_inv + blocks[best], blocks[c]))
+    ctx = SelectionContext(g, cams[[2, 3, 4]], [2, 3, 4], cams[[0, 1]], torch.ones(3, dtype=f64),
+                           torch.Generator(), settings=settings)
+    sel = make_strategy("popgs", variant="block", lam=lam).select(ctx, count=2)
+    for c, value in first.items():
+        assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"popgs block first-pick score of {c}"
+    assert sel.chosen == [best, second]

@@ -24,6 +24,7 @@ PROTOCOL_DEFAULTS = {"blender": (2, 10), "real": (4, 20)}
 def test_round_view_counts_by_hand():
     assert round_view_counts(4, 20, 1) == tuple(range(4, 20))
     assert round_view_counts(2, 7, 2) == (2, 4, 6)  # the last round adds the one view left
+    assert round_view_counts(1, 3, 1) == (1, 2)  # a single initial view is allowed
     with pytest.raises(ValueError, match="budget"):
         round_view_counts(4, 4, 1)
 
@@ -46,6 +47,7 @@ def test_paper_schedule_is_unchanged():
 def test_reload_trains_a_whole_fit_at_the_end():
     s = episode_schedule(2, 10, 1, 300, 2000, reload=True)
     assert s.final_iterations == s.total == 3000  # 300 epochs x 10 views > 2000
+    assert s.round_views == tuple(range(2, 10)) and s.round_iterations == tuple(300 * n for n in range(2, 10))
 
 
 def job_for(preset: str, initial: int, budget: int, policy: str | None) -> dict:

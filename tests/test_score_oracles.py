@@ -127,3 +127,23 @@ def test_coverage_picks_the_view_farthest_from_every_taken_view_by_hand():
     assert sel.chosen[0] == 225
     # after 225 is taken: 45 and 180 are chord(45) from their nearest, 300 is chord(60) from 0
     assert sel.chosen[1] == 300
+
+
+def test_diagonal_log_det_information_equals_the_dense_determinant():
+    """The diagonal branch of log det(I + tau^-2 S^1/2 F S^1/2) against slogdet of the dense
+    matrix with F = diag(f), at tau = 0.3."""
+    from pipeline.fisher.posterior import log_det_information
+    gen = torch.Generator().manual_seed(3)
+    s, f = torch.rand(7, generator=gen, dtype=F64) + 0.1, torch.rand(7, generator=gen, dtype=F64) * 5
+    dense = torch.eye(7, dtype=F64) + torch.diag(s.sqrt() * f * s.sqrt()) / TAU ** 2
+    expected = torch.linalg.slogdet(dense)[1]
+    assert log_det_information(s, f, TAU).item() == pytest.approx(expected.item(), rel=1e-12)
+    assert log_det_information(s, torch.diag(f), TAU).item() == pytest.approx(expected.item(), rel=1e-12)
+
+
+def test_goal_hessian_needs_a_probe():
+    from pipeline.fisher.posterior import goal_hessian
+    with pytest.raises(ValueError, match=r"no probe poses \(K = 0\)"):
+        goal_hessian(torch.zeros(0, 5, dtype=F64))
+    f = torch.rand(1, 5, dtype=F64)
+    assert torch.equal(goal_hessian(f), f[0])
