@@ -147,3 +147,13 @@ def test_goal_hessian_needs_a_probe():
         goal_hessian(torch.zeros(0, 5, dtype=F64))
     f = torch.rand(1, 5, dtype=F64)
     assert torch.equal(goal_hessian(f), f[0])
+
+
+def test_coverage_with_nothing_taken_starts_at_the_lowest_id_then_goes_farthest():
+    g = random_scene(5, seed=0, dtype=F64)
+    pool = circle_cameras([0.0, 30.0, 200.0, 90.0])
+    nothing = circle_cameras([])
+    ctx = SelectionContext(g, pool, [10, 11, 12, 13], nothing, BACKGROUND, torch.Generator())
+    sel = make_strategy("coverage").select(ctx, count=2)
+    assert all(math.isinf(v) and v > 0 for v in sel.scores.values())  # nothing to be near yet
+    assert sel.chosen == [10, 12]  # ties -> lowest id (0 deg); then 200 deg is farthest from it
