@@ -115,35 +115,6 @@ def test_reduce_pool_is_seeded_and_sized():
         reduce_pool(ids, 0.0, torch.Generator())
 
 
-def test_popgs_block_scores_match_dense_per_gaussian_blocks():
-    from pipeline.splat import RenderSettings, render
-    from pipeline.splat import Gaussians
-    from pipeline.splat.scenes import orbit_cameras
-    f64 = torch.float64
-    g = random_scene(8, seed=3, dtype=f64, sh_degree=0)
-    cams = orbit_cameras(3, 8, 8, dtype=f64, radius=2.4)
-    settings = RenderSettings(tile_size=4, chunk=4)
-    groups = ("means", "log_scales", "quats", "logit_opacities", "sh0")
-
-    def jac(cam):
-        def fn(*sel):
-            params = dict(g.params())
-            params.update(dict(zip(groups, sel)))
-            return render(Gaussians(**params), cam, torch.ones(3, dtype=f64), settings=settings).rgb.reshape(-1)
-        js = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
-        return torch.cat([j.reshape(j.shape[0], 8, -1) for j in js], 2)  # [O, N, 14]
-    blocks = [torch.einsum("onp,onq->npq", j, j) for j in (jac(cams[i]) for i in range(3))]
-    lam = 1e-2
-    sigma_inv = blocks[0] + lam * torch.eye(14, dtype=f64)
-    expect = [torch.linalg.slogdet(sigma_inv + b)[1].sum() - torch.linalg.slogdet(sigma_inv)[1].sum()
-              for b in blocks[1:]]
-    ctx = SelectionContext(g, cams[[1, 2]], [1, 2], cams[[0]], torch.ones(3, dtype=f64),
-                           torch.Generator(), settings=settings)
-    sel = make_strategy("popgs", variant="block", lam=lam).select(ctx)
-    assert sel.scores[1] == pytest.approx(expect[0].item(), rel=1e-8)
-    assert sel.scores[2] == pytest.approx(expect[1].item(), rel=1e-8)
-
-
 def test_gaussmi_prefers_directions_not_yet_observed():
     from pipeline.splat import render
     g = random_scene(400, seed=5, extent=0.5)
@@ -215,7 +186,8 @@ def test_bad_strategy_options_name_the_option(name, options, match):
 
 
 def test_popgs_block_greedy_batch_over_two_taken_views_matches_dense_blocks():
-    """Two taken views (H is their sum, not the last one) and a greedy batch of two: the first
+    """The block variant against dense per-Gaussian blocks from autograd Jacobians. Two taken views
+    (H is their sum, not the last one) and a greedy batch of two: the first
     pick's scores and the second pick follow the dense per-Gaussian blocks."""
     from pipeline.splat import Gaussians, RenderSettings, render
     from pipeline.splat.scenes import orbit_cameras
