@@ -14,6 +14,7 @@ import json
 import os
 import time
 import traceback
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from pipeline.active import episode_plan, run_episode
+from pipeline.active import RoundRecord, episode_plan, run_episode
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
@@ -61,13 +62,13 @@ def _log(folder: Path, line: str) -> None:
 Report = Callable[[dict], None]
 
 
-def round_message(rec, rounds: int) -> dict:
-    """What the driver hears of one finished round: ``round`` counts from 1 to ``rounds`` (the
-    last is the final evaluation, ``final`` True)."""
-    return {"round": rec.round + 1, "rounds": rounds, "final": rec.round + 1 == rounds,
-            "num_views": rec.num_views, "psnr": rec.test_psnr, "ssim": rec.test_ssim,
-            "num_gaussians": rec.num_gaussians, "selected": list(rec.selected),
-            "per_candidate_ms": rec.per_candidate_ms, "selection_seconds": rec.selection_seconds,
+def round_message(rec: RoundRecord, rounds: int) -> dict:
+    """What the driver hears of one finished round: the round record (without the per-candidate
+    scores and probe ids) with ``rounds`` (selection rounds + the final evaluation), ``final``
+    (this is the final evaluation) and ``seconds`` (training + selection). ``round`` counts from 0,
+    as in the records."""
+    message = {k: v for k, v in asdict(rec).items() if k not in ("scores", "probes")}
+    return {**message, "rounds": rounds, "final": rec.round + 1 == rounds,
             "seconds": round(rec.train_seconds + rec.selection_seconds, 2)}
 
 

@@ -58,9 +58,9 @@ class Progress:
 
     def round(self, job: dict, message: dict) -> None:
         """One line per finished round of a running job."""
-        what = "final" if message["final"] else f"round {message['round']}/{message['rounds']}"
+        what = "final" if message["final"] else f"round {message['round'] + 1}/{message['rounds']}"
         print(f"[{self.name}] {job_label(job)}: {what}, {message['num_views']} views, "
-              f"PSNR {message['psnr']:.2f} dB, {message['seconds']:.0f} s", flush=True)
+              f"PSNR {message['test_psnr']:.2f} dB, {message['seconds']:.0f} s", flush=True)
 
     def degraded(self, job: dict, outcome: dict) -> None:
         final = ((outcome.get("result") or {}).get("final")) or {}

@@ -36,6 +36,17 @@ def job_params(job: dict) -> dict[str, str]:
                     if k not in ("execution", "config_hash", "sweep", "code_version")})
 
 
+def round_metrics(r: dict) -> list[tuple[str, float, int]]:
+    """The metrics of one round record (or live round message), at step = views trained on."""
+    step = r["num_views"]
+    out = [("test_psnr", r["test_psnr"], step), ("test_ssim", r["test_ssim"], step),
+           ("num_gaussians", r["num_gaussians"], step)]
+    if r["selected"]:
+        out += [("per_candidate_ms", r["per_candidate_ms"], step),
+                ("selection_seconds", r["selection_seconds"], step)]
+    return out
+
+
 class NoTracker:
     uri = None
 
@@ -70,8 +81,8 @@ class MlflowTracker:
         else:
             self.experiment_id = found.experiment_id
         self.parent: str | None = None
-        self.live: dict[str, str] = {}           # config hash -> child run opened by a round message
-        self.live_steps: dict[str, set[int]] = {}  # steps (views) already logged live per job
+        # config hash -> (child run opened by a round message, steps (views) it has logged)
+        self.live: dict[str, tuple[str, set[int]]] = {}
 
     def finished_hashes(self) -> set[str]:
         hashes, token = set(), None
@@ -107,9 +118,7 @@ class MlflowTracker:
             self.client.log_batch(run_id, metrics=items[i:i + 1000])
 
     def _child_run(self, job: dict) -> str:
-        """The job's child run: the one its round messages opened, else a new one."""
-        if job["config_hash"] in self.live:
-            return self.live[job["config_hash"]]
+        """A new child run for ``job``, with its tags and params."""
         tags = {k: str(job.get(k)) for k in TAGS}
         tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or ""})
         run = self.client.create_run(self.experiment_id, run_name=f"{job['method']} {job['scene']} s{job['seed']}",
@@ -120,21 +129,14 @@ class MlflowTracker:
     def log_round(self, job: dict, message: dict) -> None:
         """A round of a running job: its metrics at step = views, in the job's (open) child run."""
         if job["config_hash"] not in self.live:
-            self.live[job["config_hash"]] = self._child_run(job)
-            self.live_steps[job["config_hash"]] = set()
-        run_id, step = self.live[job["config_hash"]], message["num_views"]
-        metrics = [("test_psnr", message["psnr"], step), ("test_ssim", message["ssim"], step),
-                   ("num_gaussians", message["num_gaussians"], step)]
-        if message["selected"]:
-            metrics += [("per_candidate_ms", message["per_candidate_ms"], step),
-                        ("selection_seconds", message["selection_seconds"], step)]
-        self._log_metrics(run_id, metrics)
-        self.live_steps[job["config_hash"]].add(step)
+            self.live[job["config_hash"]] = (self._child_run(job), set())
+        run_id, logged = self.live[job["config_hash"]]
+        self._log_metrics(run_id, round_metrics(message))
+        logged.add(message["num_views"])
 
     def log_job(self, job: dict, outcome: dict) -> str:
-        run_id = self._child_run(job)
-        logged = self.live_steps.pop(job["config_hash"], set())
-        self.live.pop(job["config_hash"], None)
+        """Complete the job's child run (the live one, else a new one) with its final state."""
+        run_id, logged = self.live.pop(job["config_hash"], None) or (self._child_run(job), set())
         tags = {"attempts": str(outcome.get("attempts"))}
         final = (outcome.get("result") or {}).get("final") or {}
         if "degraded" in final:  # the final model fell > 3 dB below its last round (see records)
@@ -157,16 +159,7 @@ class MlflowTracker:
         result = outcome["result"]
         if job["kind"] == "uncertainty":
             return [(f"ause_{name}", v, 0) for name, v in result["ause"].items()]
-        out = []
-        for r in result["rounds"]:
-            step = r["num_views"]
-            if step in logged:
-                continue
-            out += [("test_psnr", r["test_psnr"], step), ("test_ssim", r["test_ssim"], step),
-                    ("num_gaussians", r["num_gaussians"], step)]
-            if r["selected"]:
-                out += [("per_candidate_ms", r["per_candidate_ms"], step),
-                        ("selection_seconds", r["selection_seconds"], step)]
+        out = [m for r in result["rounds"] if r["num_views"] not in logged for m in round_metrics(r)]
         final = result["final"]
         out += [("final_psnr", final["psnr"], 0), ("final_ssim", final["ssim"], 0),
                 ("wall_seconds", outcome.get("seconds"), 0),
