@@ -17,14 +17,14 @@ belong to are touched; every other Gaussian has exactly zero Fisher.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.fisher.features import PARAM_GROUPS, FeatureJacobian, feature_jacobian
-from pipeline.splat import Gaussians, RenderSettings
+from pipeline.splat import Gaussians, RenderSettings, compiled
 from pipeline.splat.project import project
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
                                       local_means, outside_image, tile_monomials, untile)
@@ -245,6 +245,42 @@ def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
     return untile(img, walk.bins, walk.width, walk.height)
 
 
+# (a, b) pairs of the upper triangle of the 6x6 exponent block, in ``kernels.fisher_rows`` order
+_UPPER = [(a, b) for a in range(6) for b in range(a, 6)]
+
+
+def feature_fisher_compiled(proj, width: int, height: int, background: Tensor,
+                            tile_size: int) -> tuple[Tensor, Tensor]:
+    """``feature_fisher`` by the compiled walk: (seen [M], G [M, 9, 9] float64).
+
+    The kernel sums, per walked intersection, S h h^T, s_c w h and w^2 at each pixel's own offset
+    (no moment shifting); the rows are summed per Gaussian in a fixed order, then laid out as G.
+    """
+    kernels = compiled.load()
+    bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
+                                 proj.depths, width, height, tile_size)
+    colors = compiled.to_numpy(proj.colors)
+    workers = compiled.use_threads()
+    _, final, walked = bins.forward(colors, workers)
+    row_start, row_ids = bins.walked_rows(walked)
+    rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
+                               bins.packed, colors, final, walked,
+                               compiled.to_numpy(background.double()), bins.tiles_x, tile_size,
+                               workers)
+    seen, ids = torch.unique(torch.from_numpy(row_ids), return_inverse=True)
+    sums = torch.zeros(seen.numel(), rows.shape[1], dtype=torch.float64).index_add_(
+        0, ids, torch.from_numpy(rows))
+    G = sums.new_zeros(seen.numel(), 9, 9)
+    a, b = zip(*_UPPER)
+    G[:, a, b] = sums[:, :21]
+    G[:, b, a] = sums[:, :21]
+    cross = sums[:, 21:39].reshape(-1, 6, 3)
+    G[:, :6, 6:] = cross
+    G[:, 6:, :6] = cross.transpose(1, 2)
+    G[:, 6:, 6:] = torch.diag_embed(sums[:, 39:40].expand(-1, 3))
+    return seen.to(proj.means2d.device), G
+
+
 @dataclass
 class ViewFactors:
     """One view's Fisher factors for the M Gaussians its walk reached (all others have F = 0).
@@ -276,19 +312,28 @@ class ViewFactors:
 def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
                  spec: "FisherSpec" = None, settings: RenderSettings = RenderSettings()):
     """Yield one ``ViewFactors`` per camera: walk first, then the Jacobian of only the Gaussians
-    the walk reached (occluded and off-screen ones have zero Fisher)."""
+    the walk reached (occluded and off-screen ones have zero Fisher).
+
+    The walk is the compiled one when ``settings.backend`` resolves to ``compiled``, else the
+    torch tile walk (``tiles``; the dense and loop oracles have no Fisher walk of their own).
+    """
     spec = spec or FisherSpec()
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
     gaussians.validate()
+    backend = compiled.resolve_backend(settings.backend, gaussians.means.device)
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     bg = gaussians.means.new_zeros(3) if background is None else background
     for i in range(len(cams)):
         view = (cams.viewmats[i], cams.Ks[i], cams.width, cams.height)
         with torch.no_grad():
             proj = project(gaussians.detach(), *view, spec.sh_degree, settings.near)
-        walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
-        seen, G = feature_fisher(walk)
+        if backend == "compiled":
+            walk = None
+            seen, G = feature_fisher_compiled(proj, cams.width, cams.height, bg, settings.tile_size)
+        else:
+            walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
+            seen, G = feature_fisher(walk)
         jac = feature_jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree,
                                settings.near)
         yield ViewFactors(seen, jac, G, walk)
@@ -310,6 +355,10 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
 def predictive_variance_maps(gaussians: Gaussians, cameras: Cameras, posterior_var: Tensor,
                              background: Tensor | None = None, spec: FisherSpec = FisherSpec(),
                              settings: RenderSettings = RenderSettings()) -> Tensor:
-    """Per-pixel predictive variance maps [C, H, W, 3] for a diagonal posterior S [N, P]."""
+    """Per-pixel predictive variance maps [C, H, W, 3] for a diagonal posterior S [N, P].
+
+    Computed on the torch tile walk (``variance_map`` needs its chunk records).
+    """
+    tiles = replace(settings, backend="tiles")
     return torch.stack([variance_map(f.walk, f.feature_covariance(posterior_var)) for f in
-                        view_factors(gaussians, cameras, background, spec, settings)])
+                        view_factors(gaussians, cameras, background, spec, tiles)])

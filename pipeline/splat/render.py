@@ -9,11 +9,15 @@ from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.splat.gaussians import Gaussians
+from pipeline.splat.compiled import rasterize_compiled, resolve_backend
 from pipeline.splat.project import project
 from pipeline.splat.rasterize import rasterize
 from pipeline.splat.reference import rasterize_dense, rasterize_loop
 
-BACKENDS = {"tiles": rasterize, "dense": rasterize_dense, "loop": rasterize_loop}
+# ``auto`` (see ``compiled.resolve_backend``): compiled on CPU tensors, tiles elsewhere
+BACKENDS = {"compiled": rasterize_compiled, "tiles": rasterize, "dense": rasterize_dense,
+            "loop": rasterize_loop}
+BACKEND_NAMES = ("auto", *BACKENDS)
 
 
 @dataclass
@@ -35,7 +39,7 @@ class RenderSettings:
     near: float = 0.01
     tile_size: int = 8
     chunk: int = 64
-    backend: str = "tiles"
+    backend: str = "auto"
     dense_pixel_block: int | None = None  # dense oracle only: checkpointed pixel blocks
 
 
@@ -50,10 +54,11 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
     """
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot render an empty scene (N = 0)")
-    if settings.backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {sorted(BACKENDS)}, got {settings.backend!r}")
+    if settings.backend not in BACKEND_NAMES:
+        raise ValueError(f"backend must be one of {list(BACKEND_NAMES)}, got {settings.backend!r}")
     gaussians.validate()
-    composite = BACKENDS[settings.backend]
+    backend = resolve_backend(settings.backend, gaussians.means.device)
+    composite = BACKENDS[backend]
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     if background is None:
         background = gaussians.means.new_zeros(3)
@@ -67,9 +72,9 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
         if extra_features is not None:
             feats.append(extra_features)
         kwargs = {"tile_size": settings.tile_size}
-        if settings.backend == "tiles":
+        if backend == "tiles":
             kwargs["chunk"] = settings.chunk
-        elif settings.backend == "dense":
+        elif backend == "dense":
             kwargs["pixel_block"] = settings.dense_pixel_block
         image, alpha = composite(proj.means2d, proj.conics, proj.opacities, torch.cat(feats, 1),
                                  proj.radii, proj.depths, cams.width, cams.height, **kwargs)

@@ -1,0 +1,152 @@
+"""The compiled CPU backend: numba kernels (``kernels.py``) behind the rasterizer's contract.
+
+``rasterize_compiled`` takes and returns what ``rasterize.rasterize`` does, with an analytic
+backward (``_CompiledComposite``). Loading is lazy: the first use imports numba and the kernels
+(compiled once, then cached on disk by numba between processes). A machine where that fails
+falls back to the torch path; ``resolve_backend("auto", ...)`` then warns once, naming the reason.
+
+Threads: every call runs the kernels on ``torch.get_num_threads()`` threads (capped at numba's
+pool), so a job given one thread uses one core in the kernels too.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+import torch
+from torch import Tensor
+
+_STATE: dict = {}
+DISABLE_ENV = "GOPRE_DISABLE_COMPILED"  # set to 1 to force the torch fallback (tests, debugging)
+
+
+def load():
+    """The kernels module, or None when the compiled path cannot load (reason in ``load_error()``)."""
+    if "kernels" not in _STATE:
+        _STATE["kernels"], _STATE["error"] = None, None
+        if os.environ.get(DISABLE_ENV, "") not in ("", "0"):
+            _STATE["error"] = f"{DISABLE_ENV} is set"
+        else:
+            try:
+                from pipeline.splat import kernels
+                _STATE["kernels"] = kernels
+            except Exception as exc:  # ImportError, or numba failing to initialise
+                _STATE["error"] = f"{type(exc).__name__}: {exc}"
+    return _STATE["kernels"]
+
+
+def load_error() -> str | None:
+    load()
+    return _STATE["error"]
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """``auto`` -> ``compiled`` for CPU tensors when it loads, else ``tiles`` (one warning when the
+    compiled path was wanted on CPU but cannot load). ``compiled`` on a non-CPU device or without
+    numba is an error; other names pass through."""
+    if backend == "auto":
+        if device.type != "cpu":
+            return "tiles"
+        if load() is None:
+            if not _STATE.get("warned"):
+                warnings.warn(f"compiled CPU backend unavailable ({load_error()}); "
+                              "rendering with the torch path (backend=tiles), several times slower",
+                              RuntimeWarning, stacklevel=3)
+                _STATE["warned"] = True
+            return "tiles"
+        return "compiled"
+    if backend == "compiled":
+        if device.type != "cpu":
+            raise ValueError(f"backend 'compiled' runs on CPU tensors only, got device {device}")
+        if load() is None:
+            raise RuntimeError(f"backend 'compiled' cannot load: {load_error()}")
+    return backend
+
+
+def use_threads() -> int:
+    """Set numba to the thread count torch was given (capped at numba's pool); returns it."""
+    import numba
+    threads = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(threads)
+    return threads
+
+
+def to_numpy(x: Tensor) -> np.ndarray:
+    """A contiguous NumPy view (or copy) of a CPU tensor, detached."""
+    return x.detach().contiguous().numpy()
+
+
+class CompiledBins:
+    """Depth-sorted per-tile lists built by the compiled counting sort (NumPy arrays), with the
+    packed per-Gaussian rows the kernels read.
+
+    gauss_ids [I], offsets [T], counts [T] (same meaning as ``rasterize.TileBins``);
+    packed [N, 8] float64 (see ``kernels``).
+    """
+
+    def __init__(self, means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor,
+                 depths: Tensor, width: int, height: int, tile_size: int):
+        kernels = load()
+        self.width, self.height, self.tile_size = width, height, tile_size
+        self.tiles_x, self.tiles_y = -(-width // tile_size), -(-height // tile_size)
+        means = to_numpy(means2d)
+        order = torch.argsort(depths.detach(), stable=True)
+        rects = kernels.tile_rects(means, to_numpy(radii).astype(np.int64), self.tiles_x, self.tiles_y,
+                                   tile_size)
+        self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(
+            rects, to_numpy(order), self.tiles_x, self.tiles_y)
+        self.packed = kernels.pack(means, to_numpy(conics), to_numpy(opacities))
+
+    def forward(self, features: np.ndarray, workers: int):
+        """(image [H, W, D], final transmittance [H, W], walked [H, W]) float64 / int64."""
+        return load().composite_forward(self.gauss_ids, self.offsets, self.counts, self.packed,
+                                        features, self.width, self.height, self.tiles_x,
+                                        self.tile_size, workers)
+
+    def walked_rows(self, walked: np.ndarray):
+        """(row_start [T], row_ids [R]): one row per intersection some pixel walked."""
+        return load().walked_rows(walked, self.offsets, self.gauss_ids, self.tiles_x,
+                                  self.tile_size)
+
+
+class _CompiledComposite(torch.autograd.Function):
+    """Compositing by the compiled kernels; the backward sums per-intersection gradient rows into
+    per-Gaussian gradients with one ``index_add_`` (a fixed order: deterministic)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, bins):
+        feats = to_numpy(features)
+        image, final, walked = bins.forward(feats, use_threads())
+        ctx.bins, ctx.feats, ctx.final, ctx.walked = bins, feats, final, walked
+        ctx.n = means2d.shape[0]
+        dtype = means2d.dtype
+        return torch.from_numpy(image).to(dtype), torch.from_numpy(final).to(dtype)
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_final):
+        bins = ctx.bins
+        row_start, row_ids = bins.walked_rows(ctx.walked)
+        rows = load().composite_backward(
+            bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0], bins.packed, ctx.feats,
+            ctx.final, ctx.walked, to_numpy(grad_image.double()), to_numpy(grad_final.double()), bins.tiles_x,
+            bins.tile_size, use_threads())
+        rows = torch.from_numpy(rows)
+        per_gauss = rows.new_zeros(ctx.n, rows.shape[1]).index_add_(0, torch.from_numpy(row_ids), rows)
+        per_gauss = per_gauss.to(grad_image.dtype)
+        return per_gauss[:, 0:2], per_gauss[:, 2:5], per_gauss[:, 5], per_gauss[:, 6:], None
+
+
+def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
+                       radii: Tensor, depths: Tensor, width: int, height: int,
+                       tile_size: int = 8) -> tuple[Tensor, Tensor]:
+    """Same contract as ``rasterize.rasterize``: (features image [H, W, D], alpha [H, W]).
+
+    CPU tensors only; float32 or float64 (all inputs in one dtype).
+    """
+    if load() is None:
+        raise RuntimeError(f"backend 'compiled' cannot load: {load_error()}")
+    bins = CompiledBins(means2d, conics, opacities, radii, depths, width, height, tile_size)
+    image, final = _CompiledComposite.apply(means2d, conics, opacities, features, bins)
+    return image, 1 - final

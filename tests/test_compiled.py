@@ -1,0 +1,216 @@
+"""The compiled CPU backend against the torch tile path, the dense oracle and autograd."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from pipeline.cameras import Cameras
+from pipeline.fisher.exact import FisherSpec, view_fisher
+from pipeline.fisher.features import PARAM_GROUPS
+from pipeline.splat import Gaussians, RenderSettings, compiled, render
+from pipeline.splat.compiled import rasterize_compiled
+from pipeline.splat.project import project
+from pipeline.splat.scenes import orbit_cameras, random_scene
+
+pytestmark = pytest.mark.skipif(compiled.load() is None,
+                                reason=f"compiled backend unavailable: {compiled.load_error()}")
+
+F64 = torch.float64
+BG = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def rel(a, b):
+    return ((a - b).norm() / b.norm().clamp_min(1e-300)).item()
+
+
+def with_hard_cases(g: Gaussians, cams: Cameras) -> Gaussians:
+    """Append Gaussians behind the first camera, far off-screen, and one huge opaque one right in
+    front of it (alpha clamped at 0.99 over many pixels, and early termination behind it)."""
+    c2w = torch.linalg.inv(cams.viewmats[0])
+    eye, forward, right = c2w[:3, 3], c2w[:3, 2], c2w[:3, 0]
+    means = torch.stack([eye - 0.5 * forward, eye + 2 * forward + 30 * right,
+                         eye + 1.2 * forward + 0.02 * right])
+    extra = Gaussians(means, torch.log(torch.tensor([[0.05] * 3, [0.05] * 3, [0.15, 0.12, 0.14]],
+                                                    dtype=g.means.dtype)),
+                      torch.tensor([[1.0, 0, 0, 0], [0.9, 0.1, 0.2, 0], [0.7, 0.3, -0.2, 0.4]],
+                                   dtype=g.means.dtype),
+                      torch.tensor([2.0, 2.0, 8.0], dtype=g.means.dtype),
+                      torch.rand(3, 1, 3, dtype=g.means.dtype, generator=torch.Generator().manual_seed(1)),
+                      g.shN[:3].clone())
+    return Gaussians.cat([g, extra])
+
+
+def render_and_grads(gaussians, cams, backend, tile_size=8, sh_degree=None):
+    g = gaussians.clone().requires_grad_()
+    out = render(g, cams, background=BG, sh_degree=sh_degree,
+                 settings=RenderSettings(backend=backend, tile_size=tile_size, chunk=16))
+    w = torch.linspace(0.5, 1.5, 3, dtype=F64)
+    loss = (out.rgb * w).square().sum() + (out.alpha * 0.7).sum() + 0.1 * out.depth.sum()
+    loss.backward()
+    return out, {k: v.grad for k, v in g.params().items()}
+
+
+@pytest.mark.parametrize("seed,n,size,opacity,tile_size", [
+    (0, 300, (40, 33), (0.2, 0.9), 8),      # size not a multiple of the tile
+    (1, 500, (48, 48), (0.5, 0.999), 16),   # dense, opaque: early termination, 0.99 clamps
+    (2, 150, (37, 29), (0.05, 0.4), 4),     # faint: nothing terminates
+])
+def test_compiled_matches_dense_and_tiles_images_and_every_gradient(seed, n, size, opacity,
+                                                                    tile_size):
+    cams = orbit_cameras(2, *size, dtype=F64, radius=2.6, phase=0.3 * seed)
+    g = with_hard_cases(random_scene(n, seed=seed, sh_degree=3, dtype=F64, opacity_range=opacity),
+                        cams)
+    fast, fast_grads = render_and_grads(g, cams, "compiled", tile_size)
+    for oracle in ("dense", "tiles"):
+        ref, ref_grads = render_and_grads(g, cams, oracle, tile_size)
+        assert rel(fast.rgb, ref.rgb) < 1e-10, oracle
+        assert rel(fast.alpha, ref.alpha) < 1e-10, oracle
+        assert rel(fast.depth, ref.depth) < 1e-10, oracle
+        for name, grad in ref_grads.items():
+            assert grad.norm() > 0, name
+            assert rel(fast_grads[name], grad) < 1e-10, f"{name} vs {oracle}"
+
+
+def test_hard_cases_are_exercised():
+    """The appended Gaussians really are behind the camera, off-screen, and clamped at 0.99."""
+    cams = orbit_cameras(1, 40, 40, dtype=F64)
+    g = with_hard_cases(random_scene(50, seed=0, dtype=F64), cams)
+    proj = project(g, cams.viewmats[0], cams.Ks[0], 40, 40)
+    assert proj.depths[-3] < 0 and proj.radii[-3] == 0
+    assert proj.radii[-2] == 0  # off-screen
+    assert proj.opacities[-1] * 1.0 > 0.99 and proj.radii[-1] > 10
+
+
+def test_compiled_compositor_gradcheck_float64():
+    gen = torch.Generator().manual_seed(4)
+    n, w, h = 12, 13, 11
+    means2d = (torch.rand(n, 2, generator=gen, dtype=F64) * torch.tensor([w, h], dtype=F64))
+    conics = torch.stack([0.15 + 0.1 * torch.rand(n, generator=gen, dtype=F64),
+                          0.03 * torch.randn(n, generator=gen, dtype=F64),
+                          0.15 + 0.1 * torch.rand(n, generator=gen, dtype=F64)], -1)
+    opac = 0.3 + 0.6 * torch.rand(n, generator=gen, dtype=F64)
+    feats = torch.rand(n, 4, generator=gen, dtype=F64)
+    radii = torch.full((n,), 9, dtype=torch.long)
+    depths = torch.rand(n, generator=gen, dtype=F64)
+
+    def fn(m, c, o, f):
+        image, alpha = rasterize_compiled(m, c, o, f, radii, depths, w, h, tile_size=4)
+        return image, alpha
+
+    inputs = tuple(x.clone().requires_grad_() for x in (means2d, conics, opac, feats))
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("sh_degree", [None, 1])
+def test_compiled_fisher_equals_torch_fisher_and_autograd_jacobian(sh_degree):
+    """Every parameter group, the stored SH degree (3) and a lower active one."""
+    g = random_scene(40, seed=5, sh_degree=3, dtype=F64, opacity_range=(0.3, 0.999))
+    cams = orbit_cameras(2, 12, 10, dtype=F64, radius=2.4)
+    spec = FisherSpec(sh_degree=sh_degree)
+    fast = view_fisher(g, cams, BG, spec, RenderSettings(backend="compiled", tile_size=4))
+    torch_path = view_fisher(g, cams, BG, spec, RenderSettings(backend="tiles", tile_size=4))
+    leaves = g.clone()
+    names = list(PARAM_GROUPS)
+    for c in range(len(cams)):
+        one = Cameras(cams.viewmats[c:c + 1], cams.Ks[c:c + 1], cams.width, cams.height)
+
+        def image(*params):
+            out = render(Gaussians(*params), one, BG, sh_degree,
+                         RenderSettings(backend="dense", tile_size=4))
+            return out.rgb.reshape(-1)
+
+        params = tuple(getattr(leaves, k) for k in ("means", "log_scales", "quats",
+                                                    "logit_opacities", "sh0", "shN"))
+        jac = torch.autograd.functional.jacobian(image, params, vectorize=True)
+        brute = torch.cat([j.reshape(j.shape[0], len(g), -1).square().sum(0) for j in jac], 1)
+        assert rel(fast[c], brute) < 1e-10, f"camera {c}"
+        assert rel(fast[c], torch_path[c]) < 1e-10, f"camera {c}"
+        col = 0
+        for name, j in zip(names, jac):
+            width = j[0].numel() // len(g)
+            assert rel(fast[c][:, col:col + width], brute[:, col:col + width]) < 1e-10, name
+            col += width
+
+
+def test_float32_compiled_matches_float32_torch_at_production_scale():
+    """200x200, 50k Gaussians, float32 both: within float32 rounding of each other and of the
+    float64 result (the compiled path does its arithmetic in float64)."""
+    g32 = random_scene(50000, seed=0)
+    cams32 = orbit_cameras(1, 200, 200)
+    with torch.no_grad():
+        fast = render(g32, cams32, settings=RenderSettings(backend="compiled"))
+        slow = render(g32, cams32, settings=RenderSettings(backend="tiles"))
+        exact = render(g32.to(dtype=F64), cams32.to(dtype=F64), settings=RenderSettings(backend="compiled"))
+    assert rel(fast.rgb.double(), exact.rgb) < 1e-5
+    assert rel(slow.rgb.double(), exact.rgb) < 1e-4
+    assert (fast.rgb - slow.rgb).abs().max() < 1e-3
+
+
+def test_kernels_use_the_thread_count_torch_was_given():
+    import numba
+    g = random_scene(200, seed=0)
+    cams = orbit_cameras(1, 24, 24)
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        render(g, cams, settings=RenderSettings(backend="compiled"))
+        assert numba.get_num_threads() == min(threads, numba.config.NUMBA_NUM_THREADS)
+
+
+def test_backward_is_deterministic():
+    g = random_scene(3000, seed=1).requires_grad_()
+    cams = orbit_cameras(1, 64, 64)
+    grads = []
+    for _ in range(2):
+        out = render(g, cams, settings=RenderSettings(backend="compiled"))
+        grads.append(torch.autograd.grad(out.rgb.square().sum(), g.means)[0])
+    assert torch.equal(grads[0], grads[1])
+
+
+def _run_python(code: str, **env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          env={**os.environ, **env}, timeout=300)
+
+
+FALLBACK_PROBE = """
+import sys, warnings, torch
+{prelude}
+from pipeline.splat import RenderSettings, render
+from pipeline.splat.scenes import orbit_cameras, random_scene
+g, cams = random_scene(100, seed=0, dtype=torch.float64), orbit_cameras(2, 16, 16, dtype=torch.float64)
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    auto = render(g, cams).rgb
+    render(g, cams)
+tiles = render(g, cams, settings=RenderSettings(backend="tiles")).rgb
+print(len([w for w in caught if "compiled CPU backend unavailable" in str(w.message)]))
+print(caught[0].message if caught else "")
+print(bool(torch.equal(auto, tiles)))
+"""
+
+
+@pytest.mark.parametrize("how,prelude,env", [
+    ("numba missing", "sys.modules['numba'] = None", {}),
+    ("disabled", "", {compiled.DISABLE_ENV: "1"}),
+])
+def test_fallback_to_the_torch_path_warns_once_and_renders(how, prelude, env):
+    done = _run_python(FALLBACK_PROBE.format(prelude=prelude), **env)
+    assert done.returncode == 0, done.stderr
+    count, message, equal = done.stdout.strip().splitlines()
+    assert count == "1", how
+    assert "tiles" in message, message
+    assert equal == "True"
+
+
+def test_compiled_backend_asked_for_but_unavailable_is_a_clear_error():
+    code = ("import sys; sys.modules['numba'] = None\n"
+            "from pipeline.splat import RenderSettings, render\n"
+            "from pipeline.splat.scenes import orbit_cameras, random_scene\n"
+            "render(random_scene(10), orbit_cameras(1, 8, 8), settings=RenderSettings(backend='compiled'))")
+    done = _run_python(code)
+    assert done.returncode != 0
+    assert "backend 'compiled' cannot load" in done.stderr
