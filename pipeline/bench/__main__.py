@@ -4,7 +4,8 @@ import importlib
 import sys
 
 COMMANDS = {"render": "pipeline.bench.render", "fisher": "pipeline.bench.fisher",
-            "select": "pipeline.bench.select", "episode": "pipeline.bench.episode"}
+            "select": "pipeline.bench.select", "episode": "pipeline.bench.episode",
+            "train": "pipeline.bench.train"}
 
 
 def main() -> None:
