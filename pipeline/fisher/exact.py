@@ -326,8 +326,9 @@ def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
     bg = gaussians.means.new_zeros(3) if background is None else background
     for i in range(len(cams)):
         view = (cams.viewmats[i], cams.Ks[i], cams.width, cams.height)
+        projector = compiled.project_compiled if backend == "compiled" else project
         with torch.no_grad():
-            proj = project(gaussians.detach(), *view, spec.sh_degree, settings.near)
+            proj = projector(gaussians.detach(), *view, spec.sh_degree, settings.near)
         if backend == "compiled":
             walk = None
             seen, G = feature_fisher_compiled(proj, cams.width, cams.height, bg, settings.tile_size)

@@ -24,6 +24,7 @@ from pipeline.fit.config import FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
 from pipeline.fit.losses import photometric_loss, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat.gaussians import all_finite
 
 
 NONFINITE_STEP_LIMIT = 10
@@ -159,7 +160,7 @@ class Trainer:
     def _finite(self, loss: Tensor) -> bool:
         if not bool(torch.isfinite(loss)):
             return False
-        return all(bool(torch.isfinite(p.grad).all()) for p in self.params.values() if p.grad is not None)
+        return all_finite([p.grad for p in self.params.values() if p.grad is not None])
 
     def _skip(self, view: int, loss: float) -> None:
         """Drop this step's gradients, count it, save what produced it; raise past the limit."""

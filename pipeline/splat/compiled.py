@@ -91,13 +91,12 @@ class CompiledBins:
         kernels = load()
         self.width, self.height, self.tile_size = width, height, tile_size
         self.tiles_x, self.tiles_y = -(-width // tile_size), -(-height // tile_size)
-        means = to_numpy(means2d)
         order = torch.argsort(depths.detach(), stable=True)
-        rects = kernels.tile_rects(means, to_numpy(radii).astype(np.int64), self.tiles_x, self.tiles_y,
-                                   tile_size)
+        self.packed = kernels.pack(to_numpy(means2d), to_numpy(conics), to_numpy(opacities))
+        rects = kernels.tile_rects(self.packed, to_numpy(radii).astype(np.int64), self.tiles_x,
+                                   self.tiles_y, tile_size)
         self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(
             rects, to_numpy(order), self.tiles_x, self.tiles_y)
-        self.packed = kernels.pack(means, to_numpy(conics), to_numpy(opacities))
 
     def forward(self, features: np.ndarray, workers: int):
         """(image [H, W, D], final transmittance [H, W], walked [H, W]) float64 / int64."""
@@ -150,3 +149,52 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
     bins = CompiledBins(means2d, conics, opacities, radii, depths, width, height, tile_size)
     image, final = _CompiledComposite.apply(means2d, conics, opacities, features, bins)
     return image, 1 - final
+
+
+def _projection_kernels():
+    from pipeline.splat import project_kernels
+    return project_kernels
+
+
+class _CompiledProjection(torch.autograd.Function):
+    """``project`` by the compiled kernels, with the hand-written backward to the raw parameters
+    (no gradient to the camera)."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera):
+        arrays = tuple(to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0, shN))
+        outs = _projection_kernels().project_forward(*arrays, *camera, use_threads())
+        ctx.arrays, ctx.camera = arrays, camera
+        dtype = means.dtype
+        means2d, conics, depths, radii, colors, opacities = (torch.from_numpy(x) for x in outs)
+        ctx.mark_non_differentiable(radii)
+        return (means2d.to(dtype), conics.to(dtype), depths.to(dtype), radii, colors.to(dtype),
+                opacities.to(dtype))
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, _g_radii, g_colors, g_opacities):
+        grads = _projection_kernels().project_backward(
+            *ctx.arrays, *ctx.camera,
+            *(to_numpy(x.double()) for x in (g_means2d, g_conics, g_depths, g_colors, g_opacities)),
+            use_threads())
+        dtype = g_means2d.dtype
+        return (*(torch.from_numpy(x).to(dtype) for x in grads), None)
+
+
+def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
+                     sh_degree: int | None = None, near: float = 0.01):
+    """Same contract as ``project.project`` (a ``Projection``), by the compiled kernels.
+
+    Differentiable w.r.t. the Gaussians' raw parameters (not the camera); CPU tensors only.
+    """
+    from pipeline.splat.project import Projection
+    sh_degree = gaussians.sh_degree if sh_degree is None else sh_degree
+    if sh_degree > gaussians.sh_degree:
+        raise ValueError(f"sh_degree {sh_degree} exceeds the stored degree {gaussians.sh_degree}")
+    view = viewmat.detach().double().contiguous().numpy()
+    intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+    camera = (view, intr, int(width), int(height), int(sh_degree), float(near))
+    means2d, conics, depths, radii, colors, opacities = _CompiledProjection.apply(
+        gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
+        gaussians.sh0, gaussians.shN, camera)
+    return Projection(means2d, conics, depths, radii, colors, opacities)

@@ -55,10 +55,10 @@ class Gaussians:
                 k not in (1, 4, 9, 16):
             raise ValueError(f"shN must be [N, K-1, 3] with K in (1, 4, 9, 16), got "
                              f"{list(self.shN.shape)}")
-        for name in PARAM_NAMES:
-            value = getattr(self, name)
-            if not bool(torch.isfinite(value).all()):
-                raise ValueError(f"{name} contains NaN or inf")
+        if not all_finite([getattr(self, name) for name in PARAM_NAMES]):
+            for name in PARAM_NAMES:
+                if not bool(torch.isfinite(getattr(self, name)).all()):
+                    raise ValueError(f"{name} contains NaN or inf")
         if bool((self.quats.detach().norm(dim=-1) == 0).any()):
             raise ValueError("quats contains a zero quaternion")
 
@@ -150,6 +150,16 @@ class Gaussians:
         if scale is None:  # spacing of n points in the box
             scale = float(((high - low).prod() / n) ** (1 / 3)) * 0.5
         return Gaussians.from_points(points, colors, sh_degree, scale, opacity)
+
+
+@torch.no_grad()
+def all_finite(tensors: list[Tensor]) -> bool:
+    """True when no tensor holds NaN or inf. One reduction per tensor: a sum is finite whenever
+    its terms are, unless it overflows, which the exact element check then settles."""
+    sums = torch.stack([t.detach().sum(dtype=torch.float64) for t in tensors])
+    if bool(torch.isfinite(sums.sum())):
+        return True
+    return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:

@@ -49,18 +49,41 @@ def pack(means2d, conics, opacities):
 
 
 @njit(cache=True)
-def tile_rects(means2d, radii, tiles_x, tiles_y, tile_size):
-    """[N, 4] int64 half-open tile ranges (x0, x1, y0, y1); empty for radius 0 (culled)."""
-    n = means2d.shape[0]
+def tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
+    """[N, 4] int64 half-open tile ranges (x0, x1, y0, y1); empty for radius 0 (culled).
+
+    The 3DGS support rule (the tiles the square [u - r, u + r] x [v - r, v + r] touches),
+    narrowed to the tiles that the ellipse where alpha >= ALPHA_MIN can reach:
+    opacity exp(-d^T Q d / 2) >= ALPHA_MIN  <=>  d^T Q d <= k^2 = 2 log(opacity / ALPHA_MIN),
+    whose bounding box has half-widths k sqrt(Sigma_xx), k sqrt(Sigma_yy) (Sigma = Q^-1). Every
+    pair this drops has alpha < ALPHA_MIN at every pixel of the tile, so it would be skipped
+    anyway: the narrowing changes which pairs are visited, never the image or its gradients.
+    """
+    n = packed.shape[0]
     rects = np.zeros((n, 4), dtype=np.int64)
     for g in range(n):
         if radii[g] <= 0:
             continue
-        u, v, r = means2d[g, 0], means2d[g, 1], float(radii[g])
-        rects[g, 0] = min(max(math.floor((u - r) / tile_size), 0), tiles_x)
-        rects[g, 1] = min(max(math.floor((u + r) / tile_size) + 1, 0), tiles_x)
-        rects[g, 2] = min(max(math.floor((v - r) / tile_size), 0), tiles_y)
-        rects[g, 3] = min(max(math.floor((v + r) / tile_size) + 1, 0), tiles_y)
+        u, v, r = packed[g, 0], packed[g, 1], float(radii[g])
+        lo_x, hi_x, lo_y, hi_y = u - r, u + r, v - r, v + r
+        a, b, c, o = packed[g, 2], packed[g, 3], packed[g, 4], packed[g, 5]
+        det = a * c - b * b
+        if o * ALPHA_MAX < ALPHA_MIN:  # alpha < ALPHA_MIN everywhere (o exp(power) <= o)
+            continue
+        if det > 0.0 and o > ALPHA_MIN:
+            k2 = 2.0 * math.log(o / ALPHA_MIN)
+            ex = math.sqrt(k2 * c / det) * (1.0 + 1e-6) + 1e-3  # conservative by a hair
+            ey = math.sqrt(k2 * a / det) * (1.0 + 1e-6) + 1e-3
+            lo_x, hi_x = max(lo_x, u - ex), min(hi_x, u + ex)
+            lo_y, hi_y = max(lo_y, v - ey), min(hi_y, v + ey)
+        elif o <= ALPHA_MIN:
+            continue
+        rects[g, 0] = min(max(math.floor(lo_x / tile_size), 0), tiles_x)
+        rects[g, 1] = min(max(math.floor(hi_x / tile_size) + 1, 0), tiles_x)
+        rects[g, 2] = min(max(math.floor(lo_y / tile_size), 0), tiles_y)
+        rects[g, 3] = min(max(math.floor(hi_y / tile_size) + 1, 0), tiles_y)
+        if rects[g, 1] <= rects[g, 0] or rects[g, 3] <= rects[g, 2]:
+            rects[g, 0] = rects[g, 1] = rects[g, 2] = rects[g, 3] = 0
     return rects
 
 
@@ -113,32 +136,60 @@ def _pair(px, py, row):
     return ALPHA_MAX, False, dx, dy, e
 
 
+@njit(cache=True, inline="always")
+def _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys):
+    """Fill xs, ys with the image pixels of tile t (row-major); returns how many."""
+    x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+    npix = 0
+    for y in range(y0, min(y0 + tile_size, height)):
+        for x in range(x0, min(x0 + tile_size, width)):
+            xs[npix], ys[npix] = x, y
+            npix += 1
+    return npix
+
+
 @njit(cache=True, error_model="numpy")
 def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile_size, image,
                   final, walked):
+    """One tile, Gaussian by Gaussian over the tile's pixels (each Gaussian's row is read once per
+    tile); the walk ends when every pixel of the tile has terminated."""
     height, width, dim = image.shape
-    x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
-    start, count = offsets[t], counts[t]
-    for y in range(y0, min(y0 + tile_size, height)):
-        for x in range(x0, min(x0 + tile_size, width)):
-            px, py = x + 0.5, y + 0.5
-            trans = 1.0
-            last = 0
-            for j in range(count):
-                g = gauss_ids[start + j]
-                alpha, _, _, _, _ = _pair(px, py, packed[g])
-                if alpha == 0.0:
-                    continue
-                after = trans * (1.0 - alpha)
-                if after < T_MIN:
-                    break
-                w = alpha * trans
-                for k in range(dim):
-                    image[y, x, k] += w * features[g, k]
-                trans = after
-                last = j + 1
-            final[y, x] = trans
-            walked[y, x] = last
+    xs = np.empty(tile_size * tile_size, dtype=np.int64)
+    ys = np.empty(tile_size * tile_size, dtype=np.int64)
+    npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    trans = np.ones(npix)
+    acc = np.zeros((npix, dim))
+    last = np.zeros(npix, dtype=np.int64)
+    done = np.zeros(npix, dtype=np.bool_)
+    ndone = 0
+    start = offsets[t]
+    for j in range(counts[t]):
+        g = gauss_ids[start + j]
+        row = packed[g]
+        for p in range(npix):
+            if done[p]:
+                continue
+            alpha, _, _, _, _ = _pair(xs[p] + 0.5, ys[p] + 0.5, row)
+            if alpha == 0.0:
+                continue
+            after = trans[p] * (1.0 - alpha)
+            if after < T_MIN:
+                done[p] = True
+                ndone += 1
+                continue
+            w = alpha * trans[p]
+            for k in range(dim):
+                acc[p, k] += w * features[g, k]
+            trans[p] = after
+            last[p] = j + 1
+        if ndone == npix:
+            break
+    for p in range(npix):
+        x, y = xs[p], ys[p]
+        for k in range(dim):
+            image[y, x, k] = acc[p, k]
+        final[y, x] = trans[p]
+        walked[y, x] = last[p]
 
 
 @njit(parallel=True, cache=True)
@@ -189,38 +240,58 @@ def walked_rows(walked, offsets, gauss_ids, tiles_x, tile_size):
 @njit(cache=True, error_model="numpy")
 def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, walked, grad_image,
                    grad_final, tiles_x, tile_size, grads):
+    """One tile back to front, Gaussian by Gaussian over the pixels that composited it; each
+    Gaussian's gradient is summed over the tile's pixels locally and written to its row once."""
     height, width, dim = grad_image.shape
-    x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+    xs = np.empty(tile_size * tile_size, dtype=np.int64)
+    ys = np.empty(tile_size * tile_size, dtype=np.int64)
+    npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    trans, behind = np.empty(npix), np.empty(npix)
+    upstream = np.empty((npix, dim))
+    ends = np.empty(npix, dtype=np.int64)
+    longest = 0
+    for p in range(npix):
+        x, y = xs[p], ys[p]
+        trans[p] = final[y, x]
+        behind[p] = grad_final[y, x] * final[y, x]
+        ends[p] = walked[y, x]
+        longest = max(longest, ends[p])
+        for k in range(dim):
+            upstream[p, k] = grad_image[y, x, k]
+    local = np.empty(6 + dim)
     start, rows = offsets[t], row_start[t]
-    for y in range(y0, min(y0 + tile_size, height)):
-        for x in range(x0, min(x0 + tile_size, width)):
-            px, py = x + 0.5, y + 0.5
-            trans = final[y, x]
-            behind = grad_final[y, x] * trans
-            for j in range(walked[y, x] - 1, -1, -1):
-                g = gauss_ids[start + j]
-                p = packed[g]
-                alpha, live, dx, dy, e = _pair(px, py, p)
-                if alpha == 0.0:
-                    continue
-                trans = trans / (1.0 - alpha)
-                w = alpha * trans
-                out = grads[rows + j]
-                q = 0.0
-                for k in range(dim):
-                    q += grad_image[y, x, k] * features[g, k]
-                    out[6 + k] += w * grad_image[y, x, k]
-                d_alpha = trans * q - behind / (1.0 - alpha)
-                behind += w * q
-                if not live:
-                    continue
-                d_power = d_alpha * alpha
-                out[0] += d_power * (p[2] * dx + p[3] * dy)
-                out[1] += d_power * (p[3] * dx + p[4] * dy)
-                out[2] -= 0.5 * d_power * dx * dx
-                out[3] -= d_power * dx * dy
-                out[4] -= 0.5 * d_power * dy * dy
-                out[5] += d_alpha * e
+    for j in range(longest - 1, -1, -1):
+        g = gauss_ids[start + j]
+        row = packed[g]
+        a, b, c = row[2], row[3], row[4]
+        local[:] = 0.0
+        for p in range(npix):
+            if j >= ends[p]:
+                continue
+            alpha, live, dx, dy, e = _pair(xs[p] + 0.5, ys[p] + 0.5, row)
+            if alpha == 0.0:
+                continue
+            tr = trans[p] / (1.0 - alpha)
+            trans[p] = tr
+            w = alpha * tr
+            q = 0.0
+            for k in range(dim):
+                q += upstream[p, k] * features[g, k]
+                local[6 + k] += w * upstream[p, k]
+            d_alpha = tr * q - behind[p] / (1.0 - alpha)
+            behind[p] += w * q
+            if not live:
+                continue
+            d_power = d_alpha * alpha
+            local[0] += d_power * (a * dx + b * dy)
+            local[1] += d_power * (b * dx + c * dy)
+            local[2] -= 0.5 * d_power * dx * dx
+            local[3] -= d_power * dx * dy
+            local[4] -= 0.5 * d_power * dy * dy
+            local[5] += d_alpha * e
+        out = grads[rows + j]
+        for k in range(6 + dim):
+            out[k] = local[k]
 
 
 @njit(parallel=True, cache=True)
@@ -234,7 +305,7 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
         dL/dalpha_k = T_k q_k - (sum_{i>k} w_i q_i + dL/dT_final T_final) / (1 - alpha_k),
     with q_k = dL/dimage . f_k and w_k = alpha_k T_k; a clamped alpha passes no gradient on.
     """
-    grads = np.zeros((num_rows, 6 + grad_image.shape[2]), dtype=np.float64)
+    grads = np.empty((num_rows, 6 + grad_image.shape[2]), dtype=np.float64)  # every row written
     num_tiles = offsets.shape[0]
     for worker in prange(workers):
         for t in range(worker, num_tiles, workers):
@@ -246,49 +317,65 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
 @njit(cache=True, error_model="numpy")
 def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked, background,
                  tiles_x, tile_size, rows_out):
+    """One tile back to front, Gaussian by Gaussian; each Gaussian's 40 sums are accumulated over
+    the tile's pixels locally and written to its row once."""
     height, width = walked.shape
-    x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
-    start, rows = offsets[t], row_start[t]
+    xs = np.empty(tile_size * tile_size, dtype=np.int64)
+    ys = np.empty(tile_size * tile_size, dtype=np.int64)
+    npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    trans = np.empty(npix)
+    suffix = np.empty((npix, 3))
+    ends = np.empty(npix, dtype=np.int64)
+    longest = 0
+    for p in range(npix):
+        x, y = xs[p], ys[p]
+        trans[p] = final[y, x]
+        ends[p] = walked[y, x]
+        longest = max(longest, ends[p])
+        for c in range(3):
+            suffix[p, c] = final[y, x] * background[c]
     h = np.empty(6)
     s = np.empty(3)
-    suffix = np.empty(3)
-    for y in range(y0, min(y0 + tile_size, height)):
-        for x in range(x0, min(x0 + tile_size, width)):
-            px, py = x + 0.5, y + 0.5
-            trans = final[y, x]
+    local = np.empty(FISHER_ROW)
+    start, rows = offsets[t], row_start[t]
+    for j in range(longest - 1, -1, -1):
+        g = gauss_ids[start + j]
+        row = packed[g]
+        local[:] = 0.0
+        h[5] = 1.0 / row[5]
+        for p in range(npix):
+            if j >= ends[p]:
+                continue
+            alpha, live, dx, dy, _ = _pair(xs[p] + 0.5, ys[p] + 0.5, row)
+            if alpha == 0.0:
+                continue
+            tr = trans[p] / (1.0 - alpha)
+            trans[p] = tr
+            w = alpha * tr
+            odds = alpha / (1.0 - alpha)
+            total = 0.0
             for c in range(3):
-                suffix[c] = trans * background[c]
-            for j in range(walked[y, x] - 1, -1, -1):
-                g = gauss_ids[start + j]
-                p = packed[g]
-                alpha, live, dx, dy, _ = _pair(px, py, p)
-                if alpha == 0.0:
-                    continue
-                trans = trans / (1.0 - alpha)
-                w = alpha * trans
-                odds = alpha / (1.0 - alpha)
-                total = 0.0
+                s[c] = (w * colors[g, c] - odds * suffix[p, c]) if live else 0.0
+                suffix[p, c] += w * colors[g, c]
+                total += s[c] * s[c]
+            h[0] = row[2] * dx + row[3] * dy
+            h[1] = row[3] * dx + row[4] * dy
+            h[2] = -0.5 * dx * dx
+            h[3] = -dx * dy
+            h[4] = -0.5 * dy * dy
+            k = 0
+            for a in range(6):
+                sh = total * h[a]
+                for b in range(a, 6):
+                    local[k] += sh * h[b]
+                    k += 1
+            for a in range(6):
                 for c in range(3):
-                    s[c] = (w * colors[g, c] - odds * suffix[c]) if live else 0.0
-                    suffix[c] += w * colors[g, c]
-                    total += s[c] * s[c]
-                h[0] = p[2] * dx + p[3] * dy
-                h[1] = p[3] * dx + p[4] * dy
-                h[2] = -0.5 * dx * dx
-                h[3] = -dx * dy
-                h[4] = -0.5 * dy * dy
-                h[5] = 1.0 / p[5]
-                out = rows_out[rows + j]
-                k = 0
-                for a in range(6):
-                    sh = total * h[a]
-                    for b in range(a, 6):
-                        out[k] += sh * h[b]
-                        k += 1
-                for a in range(6):
-                    for c in range(3):
-                        out[21 + 3 * a + c] += s[c] * w * h[a]
-                out[39] += w * w
+                    local[21 + 3 * a + c] += s[c] * w * h[a]
+            local[39] += w * w
+        out = rows_out[rows + j]
+        for k in range(FISHER_ROW):
+            out[k] = local[k]
 
 
 @njit(parallel=True, cache=True)
@@ -303,7 +390,7 @@ def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, 
     The exponent's derivative s_c = w f_c - alpha / (1 - alpha) * (colour composited behind,
     background times final transmittance included), accumulated back to front.
     """
-    out = np.zeros((num_rows, FISHER_ROW), dtype=np.float64)
+    out = np.empty((num_rows, FISHER_ROW), dtype=np.float64)  # every row written
     num_tiles = offsets.shape[0]
     for worker in prange(workers):
         for t in range(worker, num_tiles, workers):

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.splat.gaussians import Gaussians
-from pipeline.splat.compiled import rasterize_compiled, resolve_backend
+from pipeline.splat.compiled import project_compiled, rasterize_compiled, resolve_backend
 from pipeline.splat.project import project
 from pipeline.splat.rasterize import rasterize
 from pipeline.splat.reference import rasterize_dense, rasterize_loop
@@ -59,6 +59,7 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
     gaussians.validate()
     backend = resolve_backend(settings.backend, gaussians.means.device)
     composite = BACKENDS[backend]
+    projector = project_compiled if backend == "compiled" else project
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     if background is None:
         background = gaussians.means.new_zeros(3)
@@ -66,8 +67,8 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
         raise ValueError(f"background must be [3], got {tuple(background.shape)}")
     outputs = []
     for i in range(len(cams)):
-        proj = project(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height, sh_degree,
-                       settings.near)
+        proj = projector(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height,
+                         sh_degree, settings.near)
         feats = [proj.colors, proj.depths[:, None]]
         if extra_features is not None:
             feats.append(extra_features)
