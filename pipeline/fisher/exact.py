@@ -23,7 +23,8 @@ import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
-from pipeline.fisher.features import PARAM_GROUPS, FeatureJacobian, feature_jacobian
+from pipeline.fisher.features import (PARAM_GROUPS, FeatureJacobian, feature_jacobian,
+                                      feature_jacobian_compiled)
 from pipeline.splat import Gaussians, RenderSettings, compiled
 from pipeline.splat.project import project
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
@@ -335,8 +336,8 @@ def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
         else:
             walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
             seen, G = feature_fisher(walk)
-        jac = feature_jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree,
-                               settings.near)
+        jacobian = feature_jacobian_compiled if backend == "compiled" else feature_jacobian
+        jac = jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree, settings.near)
         yield ViewFactors(seen, jac, G, walk)
 
 

@@ -127,3 +127,28 @@ def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: in
     slope[:, :basis.shape[1]] = basis[:, :, None] * (proj.colors.detach() > 0)[:, None, :]
     o = proj.opacities.detach()
     return FeatureJacobian(layout, geometry, o * (1 - o), slope)
+
+
+# columns of each geometric group in the compiled kernel's [N, 8, 10] geometry block
+_KERNEL_COLUMNS = {"means": slice(0, 3), "log_scales": slice(3, 6), "quats": slice(6, 10)}
+
+
+def feature_jacobian_compiled(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int,
+                              height: int, groups: tuple[str, ...], sh_degree: int | None = None,
+                              near: float = 0.01) -> FeatureJacobian:
+    """``feature_jacobian`` by the compiled kernel (hand-written chain rule, float64), CPU only."""
+    from pipeline.splat import compiled
+    from pipeline.splat.project_kernels import feature_jacobian as kernel
+    layout = param_layout(gaussians, groups)
+    degree = gaussians.sh_degree if sh_degree is None else sh_degree
+    if degree > gaussians.sh_degree:
+        raise ValueError(f"sh_degree {degree} exceeds the stored degree {gaussians.sh_degree}")
+    arrays = [compiled.to_numpy(v) for v in gaussians.params().values()]
+    intr = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    geometry, sh_slope, opacity_slope = (torch.from_numpy(x) for x in kernel(
+        *arrays, compiled.to_numpy(viewmat.double()), torch.tensor(intr, dtype=torch.float64).numpy(),
+        int(width), int(height), int(degree), float(near), compiled.use_threads()))
+    columns = [_KERNEL_COLUMNS[g] for g, _ in layout if g in GEOMETRIC]
+    geometry = torch.cat([geometry[:, :, c] for c in columns], dim=2) if columns else \
+        geometry.new_zeros(geometry.shape[0], 8, 0)
+    return FeatureJacobian(layout, geometry, opacity_slope, sh_slope)

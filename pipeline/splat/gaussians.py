@@ -156,7 +156,7 @@ class Gaussians:
 def all_finite(tensors: list[Tensor]) -> bool:
     """True when no tensor holds NaN or inf. One reduction per tensor: a sum is finite whenever
     its terms are, unless it overflows, which the exact element check then settles."""
-    sums = torch.stack([t.detach().sum(dtype=torch.float64) for t in tensors])
+    sums = torch.stack([t.detach().sum() for t in tensors])
     if bool(torch.isfinite(sums.sum())):
         return True
     return all(bool(torch.isfinite(t).all()) for t in tensors)

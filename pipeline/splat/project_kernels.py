@@ -221,34 +221,127 @@ def project_backward(means, log_scales, quats, logit_opacities, sh0, shn, view, 
 
 
 @njit(cache=True, error_model="numpy")
+def _direction(g, means, view, d):
+    """Fill d with the view direction m + W^T t (camera centre -> Gaussian); returns |d|."""
+    for i in range(3):
+        d[i] = means[g, i] + view[0, i] * view[0, 3] + view[1, i] * view[1, 3] + view[2, i] * view[2, 3]
+    return max(math.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2), 1e-12)
+
+
+@njit(cache=True, error_model="numpy")
+def _colour_is_live(g, sh0, shn, bases, basis, ch):
+    """True when channel ch's colour is not clamped at 0 (SH + 0.5 >= 0)."""
+    acc = basis[0] * sh0[g, 0, ch]
+    for k in range(1, bases):
+        acc += basis[k] * shn[g, k - 1, ch]
+    return acc + 0.5 >= 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _chain(g, k0, k1, k2, gu, gv, g_depth, gdx, gdy, gdz, log_scales, view, intr, geo, jac, rs, m,
+           qn, rot, unit, dn, gm, gj, grs, gr, out):
+    """Gradients of means, log_scales, quats (out[0:3], [3:6], [6:10], overwritten) from upstream
+    gradients of the conic (k0, k1, k2), of means2d (gu, gv), the depth and the unit view
+    direction (gdx, gdy, gdz). ``geo`` = ``_geometry``'s scalars, the arrays its outputs."""
+    x, y, z, zz, in_front, cl_x, cl_y, rx, ry, finite, qnorm = geo
+    fx, fy = intr[0], intr[1]
+    for i in range(10):
+        out[i] = 0.0
+    # through the normalisation u = d / |d| (d = m + W^T t): (g - u (u . g)) / |d|
+    dot = gdx * unit[0] + gdy * unit[1] + gdz * unit[2]
+    out[0] = (gdx - unit[0] * dot) / dn
+    out[1] = (gdy - unit[1] * dot) / dn
+    out[2] = (gdz - unit[2] * dot) / dn
+    # means2d: u = fx x / zz + cx, v = fy y / zz + cy; depth = z (unclamped)
+    g_x, g_y = gu * fx / zz, gv * fy / zz
+    g_zz = -gu * fx * x / (zz * zz) - gv * fy * y / (zz * zz)
+    g_z = g_depth
+    if finite and (k0 != 0.0 or k1 != 0.0 or k2 != 0.0):
+        # conic = (c, -b, a) / det with a = a0 + EPS, c = c0 + EPS and (Lagrange)
+        # det = a0 c0 - b^2 + EPS (a0 + c0) + EPS^2, so d det = c d a0 + a d c0 - 2 b d b
+        a, b, c, det = _conic_terms(m)
+        g_det = -(k0 * c - k1 * b + k2 * a) / (det * det)
+        g_a0 = k2 / det + g_det * c
+        g_c0 = k0 / det + g_det * a
+        g_b = -k1 / det - 2.0 * b * g_det
+        for j in range(3):  # a0 = |m0|^2, c0 = |m1|^2, b = m0 . m1
+            gm[0, j] = 2.0 * g_a0 * m[0, j] + g_b * m[1, j]
+            gm[1, j] = 2.0 * g_c0 * m[1, j] + g_b * m[0, j]
+        # M = J RS: dJ = dM RS^T, dRS = J^T dM
+        for i in range(2):
+            for j in range(3):
+                gj[i, j] = gm[i, 0] * rs[j, 0] + gm[i, 1] * rs[j, 1] + gm[i, 2] * rs[j, 2]
+        for i in range(3):
+            for j in range(3):
+                grs[i, j] = jac[0, i] * gm[0, j] + jac[1, i] * gm[1, j]
+        # J = [[fx/zz, 0, -fx tx/zz^2], [0, fy/zz, -fy ty/zz^2]], tx = zz * clamp(x / zz)
+        tx, ty = zz * rx, zz * ry
+        zz2, zz3 = zz * zz, zz * zz * zz
+        g_zz += -gj[0, 0] * fx / zz2 - gj[1, 1] * fy / zz2
+        g_zz += gj[0, 2] * 2.0 * fx * tx / zz3 + gj[1, 2] * 2.0 * fy * ty / zz3
+        g_tx, g_ty = -gj[0, 2] * fx / zz2, -gj[1, 2] * fy / zz2
+        if cl_x:  # tx = zz * lim: depends on zz only
+            g_zz += g_tx * rx
+        else:  # tx = x
+            g_x += g_tx
+        if cl_y:
+            g_zz += g_ty * ry
+        else:
+            g_y += g_ty
+        # RS = W R S: d(R S) = W^T dRS; (R S)_ij = R_ij s_j
+        for j in range(3):
+            s = math.exp(log_scales[g, j])
+            gs = 0.0
+            for i in range(3):
+                gl = view[0, i] * grs[0, j] + view[1, i] * grs[1, j] + view[2, i] * grs[2, j]
+                gr[i, j] = gl * s
+                gs += gl * rot[i, j]
+            out[3 + j] = gs * s
+        # rotation of the unit quaternion (w, x, y, z)
+        w, qx, qy, qz = qn[0], qn[1], qn[2], qn[3]
+        gw = 2 * (-qz * gr[0, 1] + qy * gr[0, 2] + qz * gr[1, 0] - qx * gr[1, 2]
+                  - qy * gr[2, 0] + qx * gr[2, 1])
+        gx = 2 * (qy * gr[0, 1] + qz * gr[0, 2] + qy * gr[1, 0] - 2 * qx * gr[1, 1]
+                  - w * gr[1, 2] + qz * gr[2, 0] + w * gr[2, 1] - 2 * qx * gr[2, 2])
+        gy = 2 * (-2 * qy * gr[0, 0] + qx * gr[0, 1] + w * gr[0, 2] + qx * gr[1, 0]
+                  + qz * gr[1, 2] - w * gr[2, 0] + qz * gr[2, 1] - 2 * qy * gr[2, 2])
+        gz = 2 * (-2 * qz * gr[0, 0] - w * gr[0, 1] + qx * gr[0, 2] + w * gr[1, 0]
+                  - 2 * qz * gr[1, 1] + qy * gr[1, 2] + qx * gr[2, 0] + qy * gr[2, 1])
+        dot = gw * w + gx * qx + gy * qy + gz * qz  # through q / |q|
+        out[6] = (gw - w * dot) / qnorm
+        out[7] = (gx - qx * dot) / qnorm
+        out[8] = (gy - qy * dot) / qnorm
+        out[9] = (gz - qz * dot) / qnorm
+    if in_front:  # zz = z in front of the near plane, else the constant 1
+        g_z += g_zz
+    for i in range(3):  # p = W m + t
+        out[i] += view[0, i] * g_x + view[1, i] * g_y + view[2, i] * g_z
+
+
+@njit(cache=True, error_model="numpy")
 def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                     height, sh_degree, near, g_means2d, g_conics, g_depths, g_colors, g_opac,
                     d_means, d_ls, d_q, d_logit, d_sh0, d_shn):
     bases = (sh_degree + 1) ** 2
-    fx, fy = intr[0], intr[1]
     jac, rs, m = np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3))
-    qn, rot, d = np.empty(4), np.empty((3, 3)), np.empty(3)
+    qn, rot, d, unit = np.empty(4), np.empty((3, 3)), np.empty(3), np.empty(3)
     basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
     gm, gj, grs, gr = np.empty((2, 3)), np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
+    out = np.empty(10)
     for g in range(lo, hi):
-        x, y, z, zz, in_front, cl_x, cl_y, rx, ry, finite, qnorm = _geometry(
-            g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m, qn, rot)
-        # opacity = sigmoid(logit)
-        o = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
+        geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m,
+                        qn, rot)
+        o = 1.0 / (1.0 + math.exp(-logit_opacities[g]))  # opacity = sigmoid(logit)
         d_logit[g] = g_opac[g] * o * (1.0 - o)
         # colour_c = max(sum_k basis_k sh_kc + 0.5, 0): SH coefficients and the view direction
+        dn = _direction(g, means, view, d)
         for i in range(3):
-            d[i] = means[g, i] + view[0, i] * view[0, 3] + view[1, i] * view[1, 3] + view[2, i] * view[2, 3]
-        dn = max(math.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2), 1e-12)
-        ux, uy, uz = d[0] / dn, d[1] / dn, d[2] / dn
-        _sh_basis(sh_degree, ux, uy, uz, basis)
-        _sh_basis_grad(sh_degree, ux, uy, uz, bx, by, bz)
+            unit[i] = d[i] / dn
+        _sh_basis(sh_degree, unit[0], unit[1], unit[2], basis)
+        _sh_basis_grad(sh_degree, unit[0], unit[1], unit[2], bx, by, bz)
         gdx, gdy, gdz = 0.0, 0.0, 0.0
         for ch in range(3):
-            acc = basis[0] * sh0[g, 0, ch]
-            for k in range(1, bases):
-                acc += basis[k] * shn[g, k - 1, ch]
-            if acc + 0.5 < 0.0:
+            if not _colour_is_live(g, sh0, shn, bases, basis, ch):
                 continue
             gc = g_colors[g, ch]
             d_sh0[g, 0, ch] = basis[0] * gc
@@ -258,74 +351,74 @@ def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn,
                 gdx += coeff * bx[k]
                 gdy += coeff * by[k]
                 gdz += coeff * bz[k]
-        # through the normalisation u = d / |d|: (g - u (u . g)) / |d|
-        dot = gdx * ux + gdy * uy + gdz * uz
-        d_means[g, 0] += (gdx - ux * dot) / dn
-        d_means[g, 1] += (gdy - uy * dot) / dn
-        d_means[g, 2] += (gdz - uz * dot) / dn
-        # means2d: u = fx x / zz + cx, v = fy y / zz + cy; depth = z (unclamped)
-        gu, gv = g_means2d[g, 0], g_means2d[g, 1]
-        g_x, g_y = gu * fx / zz, gv * fy / zz
-        g_zz = -gu * fx * x / (zz * zz) - gv * fy * y / (zz * zz)
-        g_z = g_depths[g]
-        if finite:
-            # conic = (c, -b, a) / det with a = a0 + EPS, c = c0 + EPS and (Lagrange)
-            # det = a0 c0 - b^2 + EPS (a0 + c0) + EPS^2, so d det = c d a0 + a d c0 - 2 b d b
-            a, b, c, det = _conic_terms(m)
-            k0, k1, k2 = g_conics[g, 0], g_conics[g, 1], g_conics[g, 2]
-            g_det = -(k0 * c - k1 * b + k2 * a) / (det * det)
-            g_a0 = k2 / det + g_det * c
-            g_c0 = k0 / det + g_det * a
-            g_b = -k1 / det - 2.0 * b * g_det
-            for j in range(3):  # a0 = |m0|^2, c0 = |m1|^2, b = m0 . m1
-                gm[0, j] = 2.0 * g_a0 * m[0, j] + g_b * m[1, j]
-                gm[1, j] = 2.0 * g_c0 * m[1, j] + g_b * m[0, j]
-            # M = J RS: dJ = dM RS^T, dRS = J^T dM
-            for i in range(2):
-                for j in range(3):
-                    gj[i, j] = gm[i, 0] * rs[j, 0] + gm[i, 1] * rs[j, 1] + gm[i, 2] * rs[j, 2]
-            for i in range(3):
-                for j in range(3):
-                    grs[i, j] = jac[0, i] * gm[0, j] + jac[1, i] * gm[1, j]
-            # J = [[fx/zz, 0, -fx tx/zz^2], [0, fy/zz, -fy ty/zz^2]], tx = zz * clamp(x / zz)
-            tx, ty = zz * rx, zz * ry
-            zz2, zz3 = zz * zz, zz * zz * zz
-            g_zz += -gj[0, 0] * fx / zz2 - gj[1, 1] * fy / zz2
-            g_zz += gj[0, 2] * 2.0 * fx * tx / zz3 + gj[1, 2] * 2.0 * fy * ty / zz3
-            g_tx, g_ty = -gj[0, 2] * fx / zz2, -gj[1, 2] * fy / zz2
-            if cl_x:  # tx = zz * lim: depends on zz only
-                g_zz += g_tx * rx
-            else:  # tx = x
-                g_x += g_tx
-            if cl_y:
-                g_zz += g_ty * ry
-            else:
-                g_y += g_ty
-            # RS = W R S: d(R S) = W^T dRS; (R S)_ij = R_ij s_j
-            for j in range(3):
-                s = math.exp(log_scales[g, j])
-                gs = 0.0
-                for i in range(3):
-                    gl = view[0, i] * grs[0, j] + view[1, i] * grs[1, j] + view[2, i] * grs[2, j]
-                    gr[i, j] = gl * s
-                    gs += gl * rot[i, j]
-                d_ls[g, j] = gs * s
-            # rotation of the unit quaternion (w, x, y, z)
-            w, qx, qy, qz = qn[0], qn[1], qn[2], qn[3]
-            gw = 2 * (-qz * gr[0, 1] + qy * gr[0, 2] + qz * gr[1, 0] - qx * gr[1, 2]
-                      - qy * gr[2, 0] + qx * gr[2, 1])
-            gx = 2 * (qy * gr[0, 1] + qz * gr[0, 2] + qy * gr[1, 0] - 2 * qx * gr[1, 1]
-                      - w * gr[1, 2] + qz * gr[2, 0] + w * gr[2, 1] - 2 * qx * gr[2, 2])
-            gy = 2 * (-2 * qy * gr[0, 0] + qx * gr[0, 1] + w * gr[0, 2] + qx * gr[1, 0]
-                      + qz * gr[1, 2] - w * gr[2, 0] + qz * gr[2, 1] - 2 * qy * gr[2, 2])
-            gz = 2 * (-2 * qz * gr[0, 0] - w * gr[0, 1] + qx * gr[0, 2] + w * gr[1, 0]
-                      - 2 * qz * gr[1, 1] + qy * gr[1, 2] + qx * gr[2, 0] + qy * gr[2, 1])
-            dot = gw * w + gx * qx + gy * qy + gz * qz  # through q / |q|
-            d_q[g, 0] = (gw - w * dot) / qnorm
-            d_q[g, 1] = (gx - qx * dot) / qnorm
-            d_q[g, 2] = (gy - qy * dot) / qnorm
-            d_q[g, 3] = (gz - qz * dot) / qnorm
-        if in_front:  # zz = z in front of the near plane, else the constant 1
-            g_z += g_zz
-        for i in range(3):  # p = W m + t
-            d_means[g, i] += view[0, i] * g_x + view[1, i] * g_y + view[2, i] * g_z
+        _chain(g, g_conics[g, 0], g_conics[g, 1], g_conics[g, 2], g_means2d[g, 0], g_means2d[g, 1],
+               g_depths[g], gdx, gdy, gdz, log_scales, view, intr, geo, jac, rs, m, qn, rot, unit,
+               dn, gm, gj, grs, gr, out)
+        for i in range(3):
+            d_means[g, i] = out[i]
+            d_ls[g, i] = out[3 + i]
+        for i in range(4):
+            d_q[g, i] = out[6 + i]
+
+
+@njit(cache=True, error_model="numpy")
+def _jacobian_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
+                    height, sh_degree, near, geometry, sh_slope, opacity_slope):
+    bases = (sh_degree + 1) ** 2
+    jac, rs, m = np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3))
+    qn, rot, d, unit = np.empty(4), np.empty((3, 3)), np.empty(3), np.empty(3)
+    basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
+    gm, gj, grs, gr = np.empty((2, 3)), np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
+    for g in range(lo, hi):
+        geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m,
+                        qn, rot)
+        o = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
+        opacity_slope[g] = o * (1.0 - o)
+        dn = _direction(g, means, view, d)
+        for i in range(3):
+            unit[i] = d[i] / dn
+        _sh_basis(sh_degree, unit[0], unit[1], unit[2], basis)
+        _sh_basis_grad(sh_degree, unit[0], unit[1], unit[2], bx, by, bz)
+        # rows u, v, conic a, b, c: one-hot upstream gradients
+        _chain(g, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac, rs,
+               m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 0])
+        _chain(g, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac, rs,
+               m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 1])
+        for r in range(3):
+            k0, k1, k2 = 1.0 if r == 0 else 0.0, 1.0 if r == 1 else 0.0, 1.0 if r == 2 else 0.0
+            _chain(g, k0, k1, k2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac,
+                   rs, m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 2 + r])
+        # colour rows: the view direction moves with the mean; the SH slopes are the basis
+        for ch in range(3):
+            gdx, gdy, gdz = 0.0, 0.0, 0.0
+            if _colour_is_live(g, sh0, shn, bases, basis, ch):
+                for k in range(1, bases):
+                    gdx += shn[g, k - 1, ch] * bx[k]
+                    gdy += shn[g, k - 1, ch] * by[k]
+                    gdz += shn[g, k - 1, ch] * bz[k]
+            _chain(g, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, gdx, gdy, gdz, log_scales, view, intr, geo, jac,
+                   rs, m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 5 + ch])
+            acc = basis[0] * sh0[g, 0, ch]
+            for k in range(1, bases):
+                acc += basis[k] * shn[g, k - 1, ch]
+            if acc + 0.5 > 0.0:  # the colour is strictly positive: not clamped
+                for k in range(bases):
+                    sh_slope[g, k, ch] = basis[k]
+
+
+@njit(parallel=True, cache=True)
+def feature_jacobian(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
+                     sh_degree, near, workers):
+    """The Jacobian of a view's 2D features w.r.t. the raw parameters, per Gaussian:
+    geometry [N, 8, 10]: rows (u, v, conic a, b, c, r, g, b), columns (means 3, log_scales 3,
+    quats 4); sh_slope [N, K, 3] = d colour_c / d sh_kc (0 beyond the active degree and where the
+    colour is clamped); opacity_slope [N] = d opacity / d logit. Float64."""
+    n = means.shape[0]
+    geometry = np.zeros((n, 8, 10))
+    sh_slope = np.zeros((n, shn.shape[1] + 1, 3))
+    opacity_slope = np.empty(n)
+    for w in prange(workers):
+        _jacobian_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+                        logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
+                        geometry, sh_slope, opacity_slope)
+    return geometry, sh_slope, opacity_slope
