@@ -14,13 +14,16 @@ import json
 import time
 from pathlib import Path
 
+import torch
+
 from pipeline.active import episode_preset, run_episode
 from pipeline.bench.measure import machine_load
 from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolConfig
+from pipeline.splat.compiled import auto_backend
 
 
-def main(argv=None) -> dict:
+def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(prog="python -m pipeline.bench episode", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", type=Path, required=True)
@@ -30,23 +33,41 @@ def main(argv=None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--checkpoint", type=Path, default=None, help="resume folder")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--backends", nargs="+", default=["compiled"], choices=["tiles", "compiled"],
+                        help="run the episode once per backend (add tiles for speedup_vs_torch)")
     args = parser.parse_args(argv)
+    rows, torch_wall = [], None
+    for backend in args.backends:
+        with auto_backend(backend):
+            row = run_one(args, backend)
+        if backend == "tiles":
+            torch_wall = row["wall_s"]
+        row["speedup_vs_torch"] = round(torch_wall / row["wall_s"], 2) if torch_wall else None
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    return rows
+
+
+def run_one(args, backend: str) -> dict:
     start = time.perf_counter()
     cfg = episode_preset(args.preset, strategy=args.strategy, seed=args.seed)
     cfg = cfg.with_changes(protocol=ProtocolConfig(**{**cfg.protocol.__dict__, "kind": args.protocol}))
     scene = load_scene(args.scene, width=cfg.fit.image_width)
-    result = run_episode(scene, cfg, args.checkpoint, progress=args.progress)
-    row = {"scene": str(args.scene), "strategy": args.strategy, "preset": args.preset,
-           "protocol": args.protocol, "seed": args.seed, "wall_s": round(time.perf_counter() - start, 1),
-           "final_psnr": round(result.final["psnr"], 3), "final_ssim": round(result.final["ssim"], 4),
-           "final_lpips": result.final["lpips"], "lpips_status": result.final["lpips_status"],
-           "selected": result.selected, "initial": result.initial,
-           "curve": [[r.num_views, round(r.test_psnr, 3)] for r in result.rounds],
-           "selection_s": [r.selection_seconds for r in result.rounds[:-1]],
-           "train_s": round(sum(r.train_seconds for r in result.rounds), 1),
-           "num_gaussians": result.final["num_gaussians"], "load_avg_1m": round(machine_load(), 2)}
-    print(json.dumps(row), flush=True)
-    return row
+    checkpoint = args.checkpoint
+    if checkpoint is not None and len(args.backends) > 1:  # one resume folder per backend
+        checkpoint = checkpoint / backend
+    result = run_episode(scene, cfg, checkpoint, progress=args.progress)
+    return {"scene": str(args.scene), "strategy": args.strategy, "backend": backend,
+            "preset": args.preset, "protocol": args.protocol, "seed": args.seed,
+            "wall_s": round(time.perf_counter() - start, 1),
+            "final_psnr": round(result.final["psnr"], 3), "final_ssim": round(result.final["ssim"], 4),
+            "final_lpips": result.final["lpips"], "lpips_status": result.final["lpips_status"],
+            "selected": result.selected, "initial": result.initial,
+            "curve": [[r.num_views, round(r.test_psnr, 3)] for r in result.rounds],
+            "selection_s": [r.selection_seconds for r in result.rounds[:-1]],
+            "train_s": round(sum(r.train_seconds for r in result.rounds), 1),
+            "num_gaussians": result.final["num_gaussians"], "threads": torch.get_num_threads(),
+            "load_avg_1m": round(machine_load(), 2)}
 
 
 if __name__ == "__main__":

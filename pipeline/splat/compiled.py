@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -42,10 +43,26 @@ def load_error() -> str | None:
     return _STATE["error"]
 
 
+@contextmanager
+def auto_backend(name: str):
+    """Within the block, ``auto`` resolves to ``name`` (``tiles`` or ``compiled``) on CPU: how the
+    benchmarks time whole episodes and selection rounds on the torch path in the same process."""
+    if name not in ("tiles", "compiled"):
+        raise ValueError(f"auto_backend: 'tiles' or 'compiled', got {name!r}")
+    before = _STATE.get("auto")
+    _STATE["auto"] = name
+    try:
+        yield
+    finally:
+        _STATE["auto"] = before
+
+
 def resolve_backend(backend: str, device: torch.device) -> str:
     """``auto`` -> ``compiled`` for CPU tensors when it loads, else ``tiles`` (one warning when the
     compiled path was wanted on CPU but cannot load). ``compiled`` on a non-CPU device or without
     numba is an error; other names pass through."""
+    if backend == "auto" and _STATE.get("auto") and device.type == "cpu":
+        backend = _STATE["auto"]
     if backend == "auto":
         if device.type != "cpu":
             return "tiles"
@@ -120,8 +137,7 @@ class _CompiledComposite(torch.autograd.Function):
         image, final, walked = bins.forward(feats, use_threads())
         ctx.bins, ctx.feats, ctx.final, ctx.walked = bins, feats, final, walked
         ctx.n = means2d.shape[0]
-        dtype = means2d.dtype
-        return torch.from_numpy(image).to(dtype), torch.from_numpy(final).to(dtype)
+        return torch.from_numpy(image), torch.from_numpy(final).to(features.dtype)
 
     @staticmethod
     def backward(ctx, grad_image, grad_final):
@@ -131,9 +147,7 @@ class _CompiledComposite(torch.autograd.Function):
             bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0], bins.packed, ctx.feats,
             ctx.final, ctx.walked, to_numpy(grad_image.double()), to_numpy(grad_final.double()), bins.tiles_x,
             bins.tile_size, use_threads())
-        rows = torch.from_numpy(rows)
-        per_gauss = rows.new_zeros(ctx.n, rows.shape[1]).index_add_(0, torch.from_numpy(row_ids), rows)
-        per_gauss = per_gauss.to(grad_image.dtype)
+        per_gauss = torch.from_numpy(load().sum_rows(row_ids, rows, ctx.n, ctx.feats))
         return per_gauss[:, 0:2], per_gauss[:, 2:5], per_gauss[:, 5], per_gauss[:, 6:], None
 
 

@@ -117,7 +117,7 @@ def bin_tiles(rects, depth_order, tiles_x, tiles_y):
     return gauss_ids, offsets, counts
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _pair(px, py, row):
     """(alpha, live, dx, dy, e) of one Gaussian ``row`` (packed) at pixel centre (px, py).
 
@@ -148,7 +148,7 @@ def _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys):
     return npix
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile_size, image,
                   final, walked):
     """One tile, Gaussian by Gaussian over the tile's pixels (each Gaussian's row is read once per
@@ -197,10 +197,11 @@ def composite_forward(gauss_ids, offsets, counts, packed, features, width, heigh
                       tile_size, workers):
     """Front-to-back walk of every pixel over its tile's list.
 
-    Returns image [H, W, D] float64 (accumulated features), final transmittance [H, W] and
+    Returns image [H, W, D] (accumulated features; the features' dtype, accumulated in float64),
+    final transmittance [H, W] float64 (the backward walks back from it) and
     walked [H, W] int64: the list length up to and including the pixel's last composited Gaussian.
     """
-    image = np.zeros((height, width, features.shape[1]), dtype=np.float64)
+    image = np.zeros((height, width, features.shape[1]), dtype=features.dtype)
     final = np.ones((height, width), dtype=np.float64)
     walked = np.zeros((height, width), dtype=np.int64)
     num_tiles = offsets.shape[0]
@@ -237,7 +238,7 @@ def walked_rows(walked, offsets, gauss_ids, tiles_x, tile_size):
     return row_start, row_ids
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, walked, grad_image,
                    grad_final, tiles_x, tile_size, grads):
     """One tile back to front, Gaussian by Gaussian over the pixels that composited it; each
@@ -314,7 +315,7 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
     return grads
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked, background,
                  tiles_x, tile_size, rows_out):
     """One tile back to front, Gaussian by Gaussian; each Gaussian's 40 sums are accumulated over
@@ -397,3 +398,15 @@ def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, 
             _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked,
                          background, tiles_x, tile_size, out)
     return out
+
+
+@njit(cache=True)
+def sum_rows(row_ids, rows, n, like):
+    """Per-Gaussian sums [n, K] (dtype of ``like``) of rows [R, K] by their Gaussian ids [R], in
+    row order: deterministic whatever the thread schedule that wrote the rows."""
+    out = np.zeros((n, rows.shape[1]), dtype=np.float64)
+    for r in range(rows.shape[0]):
+        g = row_ids[r]
+        for k in range(rows.shape[1]):
+            out[g, k] += rows[r, k]
+    return out.astype(like.dtype)

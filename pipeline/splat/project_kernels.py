@@ -93,7 +93,7 @@ def _unit_quat(quats, g, qn):
     return norm
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m, qn, rot):
     """The camera-space point and the 2D covariance factor M = J W R S of Gaussian g.
 
@@ -159,10 +159,10 @@ def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, i
     block's body is a plain function with its own scratch arrays (numba hoists ``np.empty`` out of
     a ``prange`` body, which would share them between threads).
     """
-    n = means.shape[0]
-    means2d, conics = np.empty((n, 2)), np.empty((n, 3))
-    depths, radii = np.empty(n), np.zeros(n, dtype=np.int64)
-    colors, opacities = np.empty((n, 3)), np.empty(n)
+    n, dtype = means.shape[0], means.dtype  # outputs in the parameters' dtype
+    means2d, conics = np.empty((n, 2), dtype), np.empty((n, 3), dtype)
+    depths, radii = np.empty(n, dtype), np.zeros(n, dtype=np.int64)
+    colors, opacities = np.empty((n, 3), dtype), np.empty(n, dtype)
     for w in prange(workers):
         _forward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
                        logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
@@ -208,10 +208,10 @@ def project_backward(means, log_scales, quats, logit_opacities, sh0, shn, view, 
                      workers):
     """Vector-Jacobian product of ``project_forward``: gradients of means [N, 3], log_scales
     [N, 3], quats [N, 4], logit_opacities [N], sh0 [N, 1, 3], shN [N, K-1, 3] (float64)."""
-    n = means.shape[0]
-    d_means, d_ls, d_q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
-    d_logit = np.zeros(n)
-    d_sh0, d_shn = np.zeros(sh0.shape), np.zeros(shn.shape)
+    n, dtype = means.shape[0], means.dtype  # gradients in the parameters' dtype
+    d_means, d_ls, d_q = np.empty((n, 3), dtype), np.empty((n, 3), dtype), np.empty((n, 4), dtype)
+    d_logit = np.empty(n, dtype)
+    d_sh0, d_shn = np.empty(sh0.shape, dtype), np.empty(shn.shape, dtype)  # zeroed per Gaussian
     for w in prange(workers):
         _backward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
                         logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
@@ -237,7 +237,7 @@ def _colour_is_live(g, sh0, shn, bases, basis, ch):
     return acc + 0.5 >= 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _chain(g, k0, k1, k2, gu, gv, g_depth, gdx, gdy, gdz, log_scales, view, intr, geo, jac, rs, m,
            qn, rot, unit, dn, gm, gj, grs, gr, out):
     """Gradients of means, log_scales, quats (out[0:3], [3:6], [6:10], overwritten) from upstream
@@ -340,6 +340,8 @@ def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn,
         _sh_basis(sh_degree, unit[0], unit[1], unit[2], basis)
         _sh_basis_grad(sh_degree, unit[0], unit[1], unit[2], bx, by, bz)
         gdx, gdy, gdz = 0.0, 0.0, 0.0
+        d_sh0[g] = 0.0
+        d_shn[g] = 0.0
         for ch in range(3):
             if not _colour_is_live(g, sh0, shn, bases, basis, ch):
                 continue
