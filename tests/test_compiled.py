@@ -263,3 +263,15 @@ def test_compiled_feature_jacobian_matches_autograd(sh_degree):
         a, b = feature_jacobian_compiled(*args).dense(), feature_jacobian(*args).dense()
         assert a.shape == b.shape
         assert rel(a, b) < 1e-10, groups
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_radix_depth_order_equals_a_stable_argsort(dtype):
+    from pipeline.splat.kernels import depth_order
+    gen = torch.Generator().manual_seed(0)
+    depths = torch.randn(5000, generator=gen, dtype=dtype) * 3
+    depths[::7] = depths[3]  # ties keep index order
+    depths[10:20] = torch.tensor([-0.0, 0.0, 1e-30, -1e-30, 1e30, -1e30, 2.5, 2.5, -2.5, 0.0],
+                                 dtype=dtype)
+    order = torch.from_numpy(depth_order(depths.numpy()))
+    assert torch.equal(order, torch.argsort(depths, stable=True))

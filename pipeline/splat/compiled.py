@@ -108,12 +108,11 @@ class CompiledBins:
         kernels = load()
         self.width, self.height, self.tile_size = width, height, tile_size
         self.tiles_x, self.tiles_y = -(-width // tile_size), -(-height // tile_size)
-        order = torch.argsort(depths.detach(), stable=True)
         self.packed = kernels.pack(to_numpy(means2d), to_numpy(conics), to_numpy(opacities))
         rects = kernels.tile_rects(self.packed, to_numpy(radii).astype(np.int64), self.tiles_x,
                                    self.tiles_y, tile_size)
         self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(
-            rects, to_numpy(order), self.tiles_x, self.tiles_y)
+            rects, kernels.depth_order(to_numpy(depths)), self.tiles_x, self.tiles_y)
 
     def forward(self, features: np.ndarray, workers: int):
         """(image [H, W, D], final transmittance [H, W], walked [H, W]) float64 / int64."""

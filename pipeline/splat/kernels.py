@@ -48,6 +48,47 @@ def pack(means2d, conics, opacities):
     return packed
 
 
+RADIX_BITS = 11
+
+
+def depth_order(depths: np.ndarray) -> np.ndarray:
+    """Stable front-to-back order of ``depths`` [N] (float32 or float64), int64 [N]: an LSD radix
+    sort on the floats' bit patterns, sign-folded so that unsigned order is float order (ties keep
+    index order, as a stable argsort; -0.0 is folded onto 0.0 first)."""
+    depths = np.ascontiguousarray(depths) + depths.dtype.type(0.0)  # -0.0 -> 0.0
+    if depths.dtype == np.float32:
+        bits = depths.view(np.uint32).astype(np.uint64)
+        sign, width = np.uint64(1 << 31), 32
+        keys = np.where(bits & sign, np.uint64(0xFFFFFFFF) ^ bits, bits | sign)
+    else:
+        bits = depths.astype(np.float64).view(np.uint64)
+        sign, width = np.uint64(1 << 63), 64
+        keys = np.where(bits & sign, ~bits, bits | sign)
+    return _radix_order(keys, width)
+
+
+@njit(cache=True)
+def _radix_order(keys, width):
+    """Stable order of the unsigned ``keys`` [N] (the low ``width`` bits), by RADIX_BITS digits."""
+    n = keys.shape[0]
+    order = np.arange(n)
+    scratch = np.empty(n, dtype=np.int64)
+    buckets = 1 << RADIX_BITS
+    mask = np.uint64(buckets - 1)
+    for shift in range(0, width, RADIX_BITS):
+        counts = np.zeros(buckets + 1, dtype=np.int64)
+        for i in range(n):
+            counts[((keys[order[i]] >> np.uint64(shift)) & mask) + 1] += 1
+        for b in range(buckets):
+            counts[b + 1] += counts[b]
+        for i in range(n):
+            digit = (keys[order[i]] >> np.uint64(shift)) & mask
+            scratch[counts[digit]] = order[i]
+            counts[digit] += 1
+        order, scratch = scratch, order
+    return order
+
+
 @njit(cache=True)
 def tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
     """[N, 4] int64 half-open tile ranges (x0, x1, y0, y1); empty for radius 0 (culled).
@@ -157,6 +198,7 @@ def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile
     xs = np.empty(tile_size * tile_size, dtype=np.int64)
     ys = np.empty(tile_size * tile_size, dtype=np.int64)
     npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    px, py = xs[:npix] + 0.5, ys[:npix] + 0.5
     trans = np.ones(npix)
     acc = np.zeros((npix, dim))
     last = np.zeros(npix, dtype=np.int64)
@@ -169,7 +211,7 @@ def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile
         for p in range(npix):
             if done[p]:
                 continue
-            alpha, _, _, _, _ = _pair(xs[p] + 0.5, ys[p] + 0.5, row)
+            alpha, _, _, _, _ = _pair(px[p], py[p], row)
             if alpha == 0.0:
                 continue
             after = trans[p] * (1.0 - alpha)
@@ -247,6 +289,7 @@ def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, wa
     xs = np.empty(tile_size * tile_size, dtype=np.int64)
     ys = np.empty(tile_size * tile_size, dtype=np.int64)
     npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    px, py = xs[:npix] + 0.5, ys[:npix] + 0.5
     trans, behind = np.empty(npix), np.empty(npix)
     upstream = np.empty((npix, dim))
     ends = np.empty(npix, dtype=np.int64)
@@ -269,7 +312,7 @@ def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, wa
         for p in range(npix):
             if j >= ends[p]:
                 continue
-            alpha, live, dx, dy, e = _pair(xs[p] + 0.5, ys[p] + 0.5, row)
+            alpha, live, dx, dy, e = _pair(px[p], py[p], row)
             if alpha == 0.0:
                 continue
             tr = trans[p] / (1.0 - alpha)
@@ -306,7 +349,7 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
         dL/dalpha_k = T_k q_k - (sum_{i>k} w_i q_i + dL/dT_final T_final) / (1 - alpha_k),
     with q_k = dL/dimage . f_k and w_k = alpha_k T_k; a clamped alpha passes no gradient on.
     """
-    grads = np.empty((num_rows, 6 + grad_image.shape[2]), dtype=np.float64)  # every row written
+    grads = np.zeros((num_rows, 6 + grad_image.shape[2]), dtype=np.float64)
     num_tiles = offsets.shape[0]
     for worker in prange(workers):
         for t in range(worker, num_tiles, workers):
@@ -324,6 +367,7 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
     xs = np.empty(tile_size * tile_size, dtype=np.int64)
     ys = np.empty(tile_size * tile_size, dtype=np.int64)
     npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    px, py = xs[:npix] + 0.5, ys[:npix] + 0.5
     trans = np.empty(npix)
     suffix = np.empty((npix, 3))
     ends = np.empty(npix, dtype=np.int64)
@@ -347,7 +391,7 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
         for p in range(npix):
             if j >= ends[p]:
                 continue
-            alpha, live, dx, dy, _ = _pair(xs[p] + 0.5, ys[p] + 0.5, row)
+            alpha, live, dx, dy, _ = _pair(px[p], py[p], row)
             if alpha == 0.0:
                 continue
             tr = trans[p] / (1.0 - alpha)
@@ -391,7 +435,7 @@ def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, 
     The exponent's derivative s_c = w f_c - alpha / (1 - alpha) * (colour composited behind,
     background times final transmittance included), accumulated back to front.
     """
-    out = np.empty((num_rows, FISHER_ROW), dtype=np.float64)  # every row written
+    out = np.zeros((num_rows, FISHER_ROW), dtype=np.float64)
     num_tiles = offsets.shape[0]
     for worker in prange(workers):
         for t in range(worker, num_tiles, workers):
