@@ -157,3 +157,83 @@ def test_coverage_with_nothing_taken_starts_at_the_lowest_id_then_goes_farthest(
     sel = make_strategy("coverage").select(ctx, count=2)
     assert all(math.isinf(v) and v > 0 for v in sel.scores.values())  # nothing to be near yet
     assert sel.chosen == [10, 12]  # ties -> lowest id (0 deg); then 200 deg is farthest from it
+
+
+def compositing_weights(g: Gaussians, cam: Cameras) -> torch.Tensor:
+    """w_pg = alpha T of every Gaussian at every pixel, [N, H, W]: the dense oracle rendering a
+    one-hot per-Gaussian feature, one Gaussian at a time (no gradients, no strategy code)."""
+    n = len(g)
+    rows = []
+    for k in range(n):
+        onehot = torch.zeros(n, 1, dtype=F64)
+        onehot[k] = 1
+        rows.append(render(g, cam, BACKGROUND, settings=DENSE, extra_features=onehot).rgb[0, ..., 3])
+    return torch.stack(rows)
+
+
+def face_bin(direction: torch.Tensor) -> torch.Tensor:
+    """Cube face of each direction [N, 3] as the face normal it is most aligned with, in the order
+    (-x, +x, -y, +y, -z, +z)."""
+    normals = torch.tensor([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]],
+                           dtype=direction.dtype)
+    return (direction @ normals.T).argmax(dim=1)
+
+
+def test_gaussmi_score_is_the_composited_reliability_entropy(setup):
+    g, cams, _ = setup
+    sigma = 0.15
+    target = random_scene(8, seed=12, dtype=F64, sh_degree=1)
+    taken_images = render(target, cams[[0]], BACKGROUND, settings=DENSE).rgb
+    pred = render(g, cams[[0]], BACKGROUND, settings=DENSE).rgb[0]
+    error = (pred - taken_images[0]).square().mean(-1)
+    reliable = torch.exp(-error / (2 * sigma ** 2)).clamp(0.05, 0.95)
+    sums = (compositing_weights(g, cams[[0]]) * torch.logit(reliable)).sum((1, 2))  # [N]
+    log_odds = torch.zeros(len(g), 6, dtype=F64)
+    log_odds[torch.arange(len(g)), face_bin(cams[[0]].centers[0] - g.means)] += sums
+    expected = {}
+    for c in (1, 2, 3):
+        p = torch.sigmoid(log_odds[torch.arange(len(g)), face_bin(cams[[c]].centers[0] - g.means)])
+        entropy = -(p * torch.log2(p) + (1 - p) * torch.log2(1 - p))
+        expected[c] = float((compositing_weights(g, cams[[c]]) * entropy[:, None, None]).sum())
+    ctx = context(g, cams)
+    ctx.taken_images = taken_images
+    sel = make_strategy("gaussmi", error_sigma=sigma).select(ctx)
+    for c, value in expected.items():
+        assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"gaussmi score of view {c}"
+    assert sel.chosen == [max(expected, key=expected.get)]
+
+
+def test_activenerf_score_is_the_rendered_variance_reduction(setup):
+    """With the attribute left at its initial value (steps=0), V_p = sum_g w_pg e^init + v_min
+    and the score is sum_p (V_p - (1/V_p + 1/tau^2)^-1), at tau = 0.3."""
+    g, cams, _ = setup
+    init, v_min = -2.0, 1e-3
+    expected = {}
+    for c in (1, 2, 3):
+        v = (compositing_weights(g, cams[[c]]) * math.exp(init)).sum(0) + v_min
+        expected[c] = float((v - 1 / (1 / v + 1 / TAU ** 2)).sum())
+    ctx = context(g, cams)
+    ctx.taken_images = render(g, cams[[0]], BACKGROUND, settings=DENSE).rgb
+    sel = make_strategy("activenerf", steps=0, tau=TAU, init_log_var=init,
+                        min_variance=v_min).select(ctx)
+    for c, value in expected.items():
+        assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"activenerf score of view {c}"
+    assert sel.chosen == [max(expected, key=expected.get)]
+
+
+def test_activenerf_fit_lowers_the_nll_of_the_taken_views(setup):
+    """The fitted variance attribute explains the taken view's residuals better than its start."""
+    g, cams, _ = setup
+    strategy = make_strategy("activenerf", steps=80, init_log_var=-3.0)
+    ctx = context(g, cams)
+    target = random_scene(8, seed=12, dtype=F64, sh_degree=1)
+    ctx.taken_images = render(target, cams[[0]], BACKGROUND, settings=DENSE).rgb
+    residual = (render(g, cams[[0]], BACKGROUND, settings=DENSE).rgb[0]
+                - ctx.taken_images[0]).square().sum(-1)
+    weights = compositing_weights(g, cams[[0]])
+
+    def nll(log_var):
+        v = (weights * torch.exp(log_var)[:, None, None]).sum(0) + strategy.min_variance
+        return float((residual / (2 * v) + 0.5 * torch.log(v)).mean())
+    fitted = strategy.fit_variance(ctx)
+    assert nll(fitted) < nll(torch.full((len(g),), -3.0, dtype=F64)) - 1e-3
