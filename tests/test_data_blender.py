@@ -161,3 +161,54 @@ def test_rgba_is_composited_over_a_non_white_background_exactly(tmp_path):
     torch.testing.assert_close(image[0, 0], bg, rtol=0, atol=1e-6)
     torch.testing.assert_close(image[1, 1], colour, rtol=0, atol=1e-6)
     torch.testing.assert_close(image[2, 2], colour * 0.2 + bg * 0.8, rtol=0, atol=1e-6)
+
+
+def _edit_json(root, split, edit):
+    path = root / f"transforms_{split}.json"
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    return path
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda d: d.pop("camera_angle_x"), "transforms_train.json: expected an object with 'camera_angle_x'"),
+    (lambda d: d["frames"][1].pop("transform_matrix"), "transforms_train.json: frame 1 lacks 'file_path'"),
+    (lambda d: d["frames"][0].update(transform_matrix=[[1, 0, "x", 0]] * 4),
+     "transforms_train.json: a transform_matrix is not a 4x4 list of numbers"),
+    (lambda d: [f.update(transform_matrix=[[1, 0, 0]] * 3) for f in d["frames"]],
+     r"transforms_train.json: transform_matrix must be 4x4, got \[3, 3\]"),
+])
+def test_every_blender_json_error_names_the_file_and_the_reason(tmp_path, small_scene, edit, match):
+    bad = _copy(small_scene, tmp_path / "s")
+    _edit_json(bad, "train", edit)
+    with pytest.raises(DataError, match=match):
+        read_blender(bad)
+
+
+def test_image_errors_name_the_file(tmp_path, small_scene):
+    from pipeline.data.images import ImageStore, image_size, read_image
+    with pytest.raises(DataError, match="nope.png: image file not found"):
+        read_image(tmp_path / "nope.png", None, torch.zeros(3))
+    with pytest.raises(DataError, match="nope.png: image file not found"):
+        image_size(tmp_path / "nope.png")
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    with pytest.raises(DataError, match="broken.png: cannot read image"):
+        read_image(broken, None, torch.zeros(3))
+    with pytest.raises(DataError, match="broken.png: cannot read image"):
+        image_size(broken)
+    from PIL import Image
+    Image.new("RGB", (20, 10)).save(tmp_path / "small.png")
+    store = ImageStore([tmp_path / "small.png"], (32, 32), torch.zeros(3), source_size=(32, 32))
+    with pytest.raises(DataError, match=r"small.png: image is 20x10, the scene's images are 32x32"):
+        store[0]
+
+
+def test_load_scene_errors_name_the_folder(tmp_path):
+    from pipeline.data.load import load_scene
+    with pytest.raises(DataError, match="nope: no such folder"):
+        load_scene(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="empty: neither a Blender scene"):
+        load_scene(tmp_path / "empty")

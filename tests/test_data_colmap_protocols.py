@@ -194,3 +194,19 @@ def test_colmap_pose_is_world_to_camera_as_written(tmp_path):
     vm = read_colmap(root).split("all").cameras.viewmats[0].double()
     expected = torch.tensor([[0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], dtype=torch.float64)
     torch.testing.assert_close(vm, expected, rtol=0, atol=1e-6)
+
+
+def test_every_remaining_colmap_error_names_the_path(tmp_path):
+    with pytest.raises(DataError, match="nope: scene folder does not exist"):
+        read_colmap(tmp_path / "nope")
+    no_images = write_text_model(tmp_path / "n", "1 PINHOLE 80 60 50 50 40 30")
+    (no_images / "sparse" / "0" / "images.txt").write_text("")
+    with pytest.raises(DataError, match="the model has no registered images"):
+        read_colmap(no_images)
+    folderless = write_text_model(tmp_path / "f", "1 PINHOLE 80 60 50 50 40 30")
+    import shutil
+    shutil.rmtree(folderless / "images")
+    with pytest.raises(DataError, match="images: image folder does not exist"):
+        read_colmap(folderless)
+    with pytest.raises(DataError, match=r"a.png: aspect ratio 40x30 differs from the model's camera 80x80"):
+        read_colmap(write_text_model(tmp_path / "a", "1 PINHOLE 80 80 50 50 40 40"))
