@@ -167,3 +167,44 @@ def test_an_unreadable_checkpoint_is_a_clear_error(scene_dir, tmp_path):
     (tmp_path / "episode.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match=r"episode.pt: unreadable checkpoint.*delete it"):
         run_episode(load(scene_dir, cfg), cfg, tmp_path)
+
+
+@pytest.mark.slow
+def test_fisher_uncertainty_ranks_errors_better_than_random_on_one_sided_views(tmp_path):
+    """Train views clustered on one side of the object: the far-side test views are both the worst
+    rendered and, for gopre's entropy and fisherrf's information gain, the most uncertain. Their
+    AUSE must be below a random ranking's (the mean over 200 permutations), not only >= 0."""
+    import math
+
+    import numpy as np
+    import torch
+
+    from pipeline.active.episode import initial_gaussians
+    from pipeline.active.uncertainty import fisher_uncertainties
+    from pipeline.eval import ause, evaluate_views, oracle_curve, sparsification_curve
+    from pipeline.fit.trainer import Trainer
+
+    episode = tiny_episode()
+    scene = load(generate(tmp_path / "scene", seed=1, size=32, n_train=24, n_test=16), episode)
+    pool, test = scene.split("train"), scene.split("test")
+    centres = pool.cameras.centers.double()
+    azimuth = torch.atan2(centres[:, 1], centres[:, 0])
+    near_side = torch.argsort(torch.cos(azimuth - 0.5).neg(), stable=True)[:5].tolist()
+    fit = episode.fit.scaled_to(400)
+    trainer = Trainer(initial_gaussians(scene, episode.with_changes(fit=fit)),
+                      pool.cameras[near_side], pool.images.stack(near_side), fit, scene.background)
+    trainer.train(fit.iterations)
+    g = trainer.gaussians
+    test_ids = list(range(len(test)))
+    psnr = np.array(evaluate_views(g, test.cameras[test_ids], test.images.stack(test_ids),
+                                   scene.background, ssim=False).psnr)
+    scores, _ = fisher_uncertainties(g, pool.cameras[near_side], test.cameras[test_ids],
+                                     scene.background, UncertaintyConfig())
+    oracle = oracle_curve(psnr)
+    rng = np.random.default_rng(0)
+    random_ause = np.mean([ause(sparsification_curve(psnr, rng.permutation(len(psnr)).astype(float)),
+                                oracle) for _ in range(200)])
+    assert math.isfinite(random_ause) and random_ause > 0
+    for method in ("gopre", "fisherrf"):
+        value = ause(sparsification_curve(psnr, scores[method]), oracle)
+        assert value < random_ause, f"{method}: AUSE {value:.3f} not below random's {random_ause:.3f}"
