@@ -152,13 +152,16 @@ def test_float32_compiled_matches_float32_torch_at_production_scale():
 
 
 def test_kernels_use_the_thread_count_torch_was_given():
-    import numba
     g = random_scene(200, seed=0)
     cams = orbit_cameras(1, 24, 24)
+    import numba
     for threads in (1, 2):
         torch.set_num_threads(threads)
         render(g, cams, settings=RenderSettings(backend="compiled"))
-        assert numba.get_num_threads() == min(threads, numba.config.NUMBA_NUM_THREADS)
+        assert torch.get_num_threads() == threads  # loading and running the kernels keep it
+        assert compiled.use_threads() == min(threads, numba.config.NUMBA_NUM_THREADS)
+        if threads > 1:
+            assert numba.get_num_threads() == compiled.use_threads()
 
 
 def test_backward_is_deterministic():
@@ -275,3 +278,30 @@ def test_radix_depth_order_equals_a_stable_argsort(dtype):
                                  dtype=dtype)
     order = torch.from_numpy(depth_order(depths.numpy()))
     assert torch.equal(order, torch.argsort(depths, stable=True))
+
+
+ONE_THREAD_PROBE = """
+import time, torch
+torch.set_num_threads(1)
+from pipeline.splat import RenderSettings, render
+from pipeline.splat.scenes import orbit_cameras, random_scene
+g, cams = random_scene(3000, seed=0).requires_grad_(), orbit_cameras(1, 48, 48)
+render(g, cams).rgb.sum().backward()  # loads the kernels
+threads_after_load = torch.get_num_threads()
+wall, cpu = time.perf_counter(), time.process_time()
+for _ in range(60):
+    render(g, cams).rgb.sum().backward()
+    time.sleep(0.002)
+print(threads_after_load, time.process_time() - cpu, time.perf_counter() - wall)
+"""
+
+
+def test_a_one_thread_job_stays_on_one_thread():
+    """Loading numba's OpenMP pool must not raise torch's thread count (it did: every torch op of
+    a one-thread Ray job then ran on two threads), and no pool thread may burn CPU beside the job:
+    the process's CPU time stays within its wall time."""
+    done = _run_python(ONE_THREAD_PROBE)
+    assert done.returncode == 0, done.stderr
+    threads, cpu, wall = done.stdout.split()
+    assert threads == "1"
+    assert float(cpu) <= 1.1 * float(wall), f"CPU {cpu} s over wall {wall} s: another thread ran"

@@ -5,8 +5,9 @@ backward (``_CompiledComposite``). Loading is lazy: the first use imports numba 
 (compiled once, then cached on disk by numba between processes). A machine where that fails
 falls back to the torch path; ``resolve_backend("auto", ...)`` then warns once, naming the reason.
 
-Threads: every call runs the kernels on ``torch.get_num_threads()`` threads (capped at numba's
-pool), so a job given one thread uses one core in the kernels too.
+Threads: every call runs the kernels on ``torch.get_num_threads()`` threads, capped at numba's
+pool, which is sized to torch's thread count when the kernels first load (``NUMBA_NUM_THREADS``
+overrides it); one thread runs them serially. Loading them leaves torch's thread count as it was.
 """
 
 from __future__ import annotations
@@ -30,12 +31,32 @@ def load():
         if os.environ.get(DISABLE_ENV, "") not in ("", "0"):
             _STATE["error"] = f"{DISABLE_ENV} is set"
         else:
+            threads = torch.get_num_threads()
             try:
                 from pipeline.splat import kernels
+                _start_thread_pool(threads)
                 _STATE["kernels"] = kernels
             except Exception as exc:  # ImportError, or numba failing to initialise
                 _STATE["error"] = f"{type(exc).__name__}: {exc}"
+            finally:
+                torch.set_num_threads(threads)
     return _STATE["kernels"]
+
+
+def _start_thread_pool(threads: int) -> None:
+    """Start numba's thread pool with ``threads`` threads (unless ``NUMBA_NUM_THREADS`` says
+    otherwise); the caller then restores torch's thread count.
+
+    Sized to the job: a one-thread job gets no idle pool threads, which otherwise spin on the
+    cores other jobs use. Not via the environment, which child processes (Ray workers) inherit.
+    And numba's OpenMP layer sets the process-wide OpenMP thread count to its pool size, which
+    silently gave every later torch op all the machine's cores (measured: a sweep of one-thread
+    jobs on 2 cores ran 15x slower than the same jobs alone)."""
+    import numba
+    from numba.np.ufunc import parallel
+    if "NUMBA_NUM_THREADS" not in os.environ and not parallel._is_initialized:
+        numba.config.NUMBA_NUM_THREADS = parallel.NUM_THREADS = max(1, threads)
+    parallel._launch_threads()
 
 
 def load_error() -> str | None:
@@ -83,9 +104,14 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def use_threads() -> int:
-    """Set numba to the thread count torch was given (capped at numba's pool); returns it."""
+    """The kernels' thread count: what torch was given, capped at numba's pool. One thread runs
+    the kernels serially without touching numba's thread pool at all (``set_num_threads`` would
+    start it, and its idle threads spin on the cores other jobs are using)."""
+    threads = torch.get_num_threads()
+    if threads <= 1:
+        return 1
     import numba
-    threads = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    threads = max(1, min(threads, numba.config.NUMBA_NUM_THREADS))
     numba.set_num_threads(threads)
     return threads
 

@@ -26,6 +26,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
+# prange loops only: numba would otherwise turn np.zeros & co. into parallel regions too, and a
+# job given one thread must never start the thread pool (its idle threads spin on a busy core)
+PRANGE_ONLY = {"prange": True, "comprehension": False, "reduction": False, "inplace_binop": False,
+               "setitem": False, "numpy": False, "stencil": False, "fusion": False}
+
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
@@ -234,7 +239,7 @@ def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile
         walked[y, x] = last[p]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def composite_forward(gauss_ids, offsets, counts, packed, features, width, height, tiles_x,
                       tile_size, workers):
     """Front-to-back walk of every pixel over its tile's list.
@@ -247,10 +252,15 @@ def composite_forward(gauss_ids, offsets, counts, packed, features, width, heigh
     final = np.ones((height, width), dtype=np.float64)
     walked = np.zeros((height, width), dtype=np.int64)
     num_tiles = offsets.shape[0]
-    for worker in prange(workers):
-        for t in range(worker, num_tiles, workers):
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        for t in range(num_tiles):
             _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile_size,
                           image, final, walked)
+    else:
+        for worker in prange(workers):
+            for t in range(worker, num_tiles, workers):
+                _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile_size,
+                              image, final, walked)
     return image, final, walked
 
 
@@ -338,7 +348,7 @@ def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, wa
             out[k] = local[k]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features, final, walked,
                        grad_image, grad_final, tiles_x, tile_size, workers):
     """Gradient rows [R, 6 + D] float64 (u, v, conic a, b, c, opacity, features), one per walked
@@ -351,10 +361,15 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
     """
     grads = np.zeros((num_rows, 6 + grad_image.shape[2]), dtype=np.float64)
     num_tiles = offsets.shape[0]
-    for worker in prange(workers):
-        for t in range(worker, num_tiles, workers):
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        for t in range(num_tiles):
             _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, walked,
                            grad_image, grad_final, tiles_x, tile_size, grads)
+    else:
+        for worker in prange(workers):
+            for t in range(worker, num_tiles, workers):
+                _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, walked,
+                               grad_image, grad_final, tiles_x, tile_size, grads)
     return grads
 
 
@@ -423,7 +438,7 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
             out[k] = local[k]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, walked,
                 background, tiles_x, tile_size, workers):
     """Per walked intersection, the pixel sums of the feature-space Fisher pieces, [R, 40] float64.
@@ -437,10 +452,15 @@ def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, 
     """
     out = np.zeros((num_rows, FISHER_ROW), dtype=np.float64)
     num_tiles = offsets.shape[0]
-    for worker in prange(workers):
-        for t in range(worker, num_tiles, workers):
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        for t in range(num_tiles):
             _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked,
                          background, tiles_x, tile_size, out)
+    else:
+        for worker in prange(workers):
+            for t in range(worker, num_tiles, workers):
+                _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked,
+                             background, tiles_x, tile_size, out)
     return out
 
 

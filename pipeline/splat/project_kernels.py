@@ -15,6 +15,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
+# prange loops only: numba would otherwise turn np.zeros & co. into parallel regions too, and a
+# job given one thread must never start the thread pool (its idle threads spin on a busy core)
+PRANGE_ONLY = {"prange": True, "comprehension": False, "reduction": False, "inplace_binop": False,
+               "setitem": False, "numpy": False, "stencil": False, "fusion": False}
+
 EPS_2D = 0.3
 MAX_VARIANCE_2D = 1e15
 CLAMP_FOV = 1.3
@@ -149,7 +154,7 @@ def _conic_terms(m):
     return a0 + EPS_2D, b, c0 + EPS_2D, det
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
                     sh_degree, near, workers):
     """Per Gaussian: means2d [N, 2], conics [N, 3], depths [N], radii [N] int64, colors [N, 3],
@@ -163,10 +168,15 @@ def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, i
     means2d, conics = np.empty((n, 2), dtype), np.empty((n, 3), dtype)
     depths, radii = np.empty(n, dtype), np.zeros(n, dtype=np.int64)
     colors, opacities = np.empty((n, 3), dtype), np.empty(n, dtype)
-    for w in prange(workers):
-        _forward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        _forward_block(0, n, means, log_scales, quats,
                        logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
                        means2d, conics, depths, radii, colors, opacities)
+    else:
+        for w in prange(workers):
+            _forward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+                           logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
+                           means2d, conics, depths, radii, colors, opacities)
     return means2d, conics, depths, radii, colors, opacities
 
 
@@ -202,7 +212,7 @@ def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, 
         opacities[g] = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def project_backward(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                      height, sh_degree, near, g_means2d, g_conics, g_depths, g_colors, g_opac,
                      workers):
@@ -212,11 +222,17 @@ def project_backward(means, log_scales, quats, logit_opacities, sh0, shn, view, 
     d_means, d_ls, d_q = np.empty((n, 3), dtype), np.empty((n, 3), dtype), np.empty((n, 4), dtype)
     d_logit = np.empty(n, dtype)
     d_sh0, d_shn = np.empty(sh0.shape, dtype), np.empty(shn.shape, dtype)  # zeroed per Gaussian
-    for w in prange(workers):
-        _backward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        _backward_block(0, n, means, log_scales, quats,
                         logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
                         g_means2d, g_conics, g_depths, g_colors, g_opac, d_means, d_ls, d_q,
                         d_logit, d_sh0, d_shn)
+    else:
+        for w in prange(workers):
+            _backward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+                            logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
+                            g_means2d, g_conics, g_depths, g_colors, g_opac, d_means, d_ls, d_q,
+                            d_logit, d_sh0, d_shn)
     return d_means, d_ls, d_q, d_logit, d_sh0, d_shn
 
 
@@ -408,7 +424,7 @@ def _jacobian_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn,
                     sh_slope[g, k, ch] = basis[k]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def feature_jacobian(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
                      sh_degree, near, workers):
     """The Jacobian of a view's 2D features w.r.t. the raw parameters, per Gaussian:
@@ -419,8 +435,13 @@ def feature_jacobian(means, log_scales, quats, logit_opacities, sh0, shn, view, 
     geometry = np.zeros((n, 8, 10))
     sh_slope = np.zeros((n, shn.shape[1] + 1, 3))
     opacity_slope = np.empty(n)
-    for w in prange(workers):
-        _jacobian_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        _jacobian_block(0, n, means, log_scales, quats,
                         logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
                         geometry, sh_slope, opacity_slope)
+    else:
+        for w in prange(workers):
+            _jacobian_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
+                            logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
+                            geometry, sh_slope, opacity_slope)
     return geometry, sh_slope, opacity_slope
