@@ -24,12 +24,11 @@ def ssim_map(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> 
     x = img.reshape(-1, *img.shape[-3:]).permute(0, 3, 1, 2)
     y = ref.reshape(-1, *ref.shape[-3:]).permute(0, 3, 1, 2)
     c = x.shape[1]
-    w = _window(window, sigma, c, x)
-    pad = window // 2
-    mu_x, mu_y = F.conv2d(x, w, padding=pad, groups=c), F.conv2d(y, w, padding=pad, groups=c)
-    sxx = F.conv2d(x * x, w, padding=pad, groups=c) - mu_x ** 2
-    syy = F.conv2d(y * y, w, padding=pad, groups=c) - mu_y ** 2
-    sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
+    # the five local means in one grouped convolution (one op instead of five)
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [B, 5C, H, W]
+    means = F.conv2d(stack, _window(window, sigma, 5 * c, x), padding=window // 2, groups=5 * c)
+    mu_x, mu_y, exx, eyy, exy = means.split(c, dim=1)
+    sxx, syy, sxy = exx - mu_x ** 2, eyy - mu_y ** 2, exy - mu_x * mu_y
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
 
