@@ -12,12 +12,15 @@ import pytest
 import torch
 
 from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
-from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat import Gaussians, RenderSettings, compiled, render
 from pipeline.splat.project import project
 from pipeline.splat.render import BACKENDS as REGISTERED_BACKENDS
 from tests.conftest import shared_scene
 
-BACKENDS = tuple(REGISTERED_BACKENDS)  # every backend, including any added later (a compiled one)
+# every backend, including any added later; the compiled one where it can load
+BACKENDS = tuple(pytest.param(b, marks=pytest.mark.skipif(
+    b == "compiled" and compiled.load() is None,
+    reason=f"compiled backend unavailable: {compiled.load_error()}")) for b in REGISTERED_BACKENDS)
 
 
 def load_regression():

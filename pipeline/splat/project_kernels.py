@@ -15,20 +15,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
-# prange loops only: numba would otherwise turn np.zeros & co. into parallel regions too, and a
-# job given one thread must never start the thread pool (its idle threads spin on a busy core)
-PRANGE_ONLY = {"prange": True, "comprehension": False, "reduction": False, "inplace_binop": False,
-               "setitem": False, "numpy": False, "stencil": False, "fusion": False}
+from pipeline.splat.kernels import PRANGE_ONLY
+from pipeline.splat.project import EPS_2D, MAX_VARIANCE_2D  # the rules have one source
+from pipeline.splat.sh import C0, C1, C2, C3
 
-EPS_2D = 0.3
-MAX_VARIANCE_2D = 1e15
 CLAMP_FOV = 1.3
-C0 = 0.28209479177387814
-C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-      0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 
 @njit(cache=True, inline="always")
@@ -334,15 +325,21 @@ def _chain(g, k0, k1, k2, gu, gv, g_depth, gdx, gdy, gdz, log_scales, view, intr
         out[i] += view[0, i] * g_x + view[1, i] * g_y + view[2, i] * g_z
 
 
+@njit(cache=True)
+def _chain_scratch():
+    """Per-block scratch of the backward chain: jac, rs, m, qn, rot, d, unit, basis, bx, by, bz
+    (SH basis and its gradient), gm, gj, grs, gr (the chain's intermediate gradients)."""
+    return (np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3)), np.empty(4), np.empty((3, 3)),
+            np.empty(3), np.empty(3), np.empty(16), np.empty(16), np.empty(16), np.empty(16),
+            np.empty((2, 3)), np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3)))
+
+
 @njit(cache=True, error_model="numpy")
 def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                     height, sh_degree, near, g_means2d, g_conics, g_depths, g_colors, g_opac,
                     d_means, d_ls, d_q, d_logit, d_sh0, d_shn):
     bases = (sh_degree + 1) ** 2
-    jac, rs, m = np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3))
-    qn, rot, d, unit = np.empty(4), np.empty((3, 3)), np.empty(3), np.empty(3)
-    basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
-    gm, gj, grs, gr = np.empty((2, 3)), np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
+    jac, rs, m, qn, rot, d, unit, basis, bx, by, bz, gm, gj, grs, gr = _chain_scratch()
     out = np.empty(10)
     for g in range(lo, hi):
         geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m,
@@ -383,10 +380,7 @@ def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn,
 def _jacobian_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                     height, sh_degree, near, geometry, sh_slope, opacity_slope):
     bases = (sh_degree + 1) ** 2
-    jac, rs, m = np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3))
-    qn, rot, d, unit = np.empty(4), np.empty((3, 3)), np.empty(3), np.empty(3)
-    basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
-    gm, gj, grs, gr = np.empty((2, 3)), np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3))
+    jac, rs, m, qn, rot, d, unit, basis, bx, by, bz, gm, gj, grs, gr = _chain_scratch()
     for g in range(lo, hi):
         geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m,
                         qn, rot)
