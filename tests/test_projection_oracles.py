@@ -179,3 +179,21 @@ def test_an_off_axis_pixel_equals_its_hand_computed_value():
     expected = background * (1 - alpha) + colour * alpha
     torch.testing.assert_close(image.rgb[0, row, col], expected, rtol=1e-12, atol=1e-12)
     assert 0.05 < alpha < 0.6  # a pixel on the Gaussian's flank, off its centre
+
+
+def test_gaussians_too_large_to_draw_are_culled_and_smaller_ones_drawn():
+    """On the optical axis at depth 1 with scale s, M = J R S has squared norm 2 (f s)^2. Past
+    MAX_VARIANCE_2D (1e15 px^2) the Gaussian is culled (radius 0, finite conic); a factor 100
+    below it, it is drawn with radius 3 sqrt(lambda_max) = 3 f s."""
+    from pipeline.cameras import intrinsics_from_fov
+    from pipeline.splat.project import MAX_VARIANCE_2D
+    K = intrinsics_from_fov(0.9, 64, 64, 1, dtype=F64)[0]
+    f = K[0, 0].item()
+    scales = torch.tensor([math.sqrt(100 * MAX_VARIANCE_2D / 2) / f,
+                           math.sqrt(MAX_VARIANCE_2D / 100 / 2) / f], dtype=F64)
+    g = Gaussians(torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=F64), torch.log(scales)[:, None].repeat(1, 3),
+                  torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=F64), torch.zeros(2, dtype=F64),
+                  torch.zeros(2, 1, 3, dtype=F64), torch.zeros(2, 0, 3, dtype=F64))
+    proj = project(g, torch.eye(4, dtype=F64), K, 64, 64)
+    assert proj.radii[0] == 0 and bool(torch.isfinite(proj.conics[0]).all())
+    assert proj.radii[1] == pytest.approx(math.ceil(3 * f * scales[1].item()), abs=1)
