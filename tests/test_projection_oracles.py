@@ -197,3 +197,14 @@ def test_gaussians_too_large_to_draw_are_culled_and_smaller_ones_drawn():
     proj = project(g, torch.eye(4, dtype=F64), K, 64, 64)
     assert proj.radii[0] == 0 and bool(torch.isfinite(proj.conics[0]).all())
     assert proj.radii[1] == pytest.approx(math.ceil(3 * f * scales[1].item()), abs=1)
+
+
+@pytest.mark.parametrize("backend", ["tiles", "compiled"])
+def test_an_active_sh_degree_above_the_stored_one_is_refused_by_name(backend):
+    from pipeline.splat import compiled
+    if backend == "compiled" and compiled.load() is None:
+        pytest.skip(f"compiled backend unavailable: {compiled.load_error()}")
+    g = random_gaussians(4, seed=0, sh_degree=1)
+    cams = off_axis_camera(0)
+    with pytest.raises(ValueError, match="sh_degree 2 exceeds the stored degree 1"):
+        render(g, cams, sh_degree=2, settings=RenderSettings(backend=backend))
