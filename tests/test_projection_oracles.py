@@ -208,3 +208,21 @@ def test_an_active_sh_degree_above_the_stored_one_is_refused_by_name(backend):
     cams = off_axis_camera(0)
     with pytest.raises(ValueError, match="sh_degree 2 exceeds the stored degree 1"):
         render(g, cams, sh_degree=2, settings=RenderSettings(backend=backend))
+
+
+@pytest.mark.parametrize("backend", ["tiles", "compiled"])
+def test_a_gaussian_exactly_on_the_near_plane_is_culled(backend):
+    """The rule is 'at or behind the near plane': depth == near is culled, just beyond is drawn."""
+    from pipeline.cameras import intrinsics_from_fov
+    from pipeline.splat import compiled
+    if backend == "compiled" and compiled.load() is None:
+        pytest.skip(f"compiled backend unavailable: {compiled.load_error()}")
+    near = 0.25
+    depths = torch.tensor([near, near * (1 + 1e-9)], dtype=F64)
+    g = Gaussians(torch.stack([torch.zeros(2, dtype=F64), torch.zeros(2, dtype=F64), depths], -1),
+                  torch.full((2, 3), math.log(0.01), dtype=F64), torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=F64),
+                  torch.zeros(2, dtype=F64), torch.zeros(2, 1, 3, dtype=F64), torch.zeros(2, 0, 3, dtype=F64))
+    K = intrinsics_from_fov(0.9, 32, 32, 1, dtype=F64)[0]
+    projector = compiled.project_compiled if backend == "compiled" else project
+    proj = projector(g, torch.eye(4, dtype=F64), K, 32, 32, near=near)
+    assert proj.radii[0] == 0 and proj.radii[1] > 0
