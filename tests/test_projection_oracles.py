@@ -226,3 +226,27 @@ def test_a_gaussian_exactly_on_the_near_plane_is_culled(backend):
     projector = compiled.project_compiled if backend == "compiled" else project
     proj = projector(g, torch.eye(4, dtype=F64), K, 32, 32, near=near)
     assert proj.radii[0] == 0 and proj.radii[1] > 0
+
+
+def test_from_points_builds_the_documented_initial_gaussians():
+    points = torch.tensor([[0.0, 1.0, 2.0], [3.0, -1.0, 0.5]], dtype=F64)
+    colors = torch.tensor([[0.1, 0.5, 0.9], [1.0, 0.0, 0.25]], dtype=F64)
+    g = Gaussians.from_points(points, colors, sh_degree=2, scale=torch.tensor([0.02, 0.5], dtype=F64),
+                              opacity=0.3)
+    assert torch.equal(g.means, points)
+    assert torch.equal(g.quats, torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=F64))  # w first
+    assert torch.allclose(g.scales, torch.tensor([[0.02] * 3, [0.5] * 3], dtype=F64), rtol=1e-12)
+    assert torch.allclose(g.opacities, torch.full((2,), 0.3, dtype=F64), rtol=1e-12)
+    # the DC term alone reproduces the colour: C0 * sh0 + 0.5
+    assert torch.allclose(eval_sh(0, g.sh, torch.tensor([[0, 0, 1.0]] * 2, dtype=F64)) + 0.5, colors)
+    assert g.shN.shape == (2, 8, 3) and g.shN.abs().max() == 0
+    with pytest.raises(ValueError, match="points: cannot build Gaussians from an empty point cloud"):
+        Gaussians.from_points(points[:0], colors[:0])
+
+
+def test_sh_degrees_outside_0_to_3_are_refused_by_value():
+    coeffs = torch.zeros(1, 25, 3, dtype=F64)
+    dirs = torch.tensor([[0, 0, 1.0]], dtype=F64)
+    for degree in (-1, 4):
+        with pytest.raises(ValueError, match=f"sh degree must be in 0..3, got {degree}"):
+            eval_sh(degree, coeffs, dirs)
