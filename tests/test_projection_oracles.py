@@ -250,3 +250,25 @@ def test_sh_degrees_outside_0_to_3_are_refused_by_value():
     for degree in (-1, 4):
         with pytest.raises(ValueError, match=f"sh degree must be in 0..3, got {degree}"):
             eval_sh(degree, coeffs, dirs)
+
+
+def test_too_few_sh_coefficients_for_the_degree_are_refused_with_both_counts():
+    dirs = torch.tensor([[0, 0, 1.0]], dtype=F64)
+    with pytest.raises(ValueError, match="coeffs has 4 bases, degree 2 needs 9"):
+        eval_sh(2, torch.zeros(1, 4, 3, dtype=F64), dirs)
+    with pytest.raises(ValueError, match="coeffs has 9 bases, degree 3 needs 16"):
+        eval_sh(3, torch.zeros(1, 9, 3, dtype=F64), dirs)
+    assert eval_sh(1, torch.zeros(1, 4, 3, dtype=F64), dirs).shape == (1, 3)  # exactly enough
+
+
+@pytest.mark.parametrize("shape", [(4,), (4, 2), (4, 3, 1)])
+def test_means_of_the_wrong_shape_are_refused_with_the_shape(shape):
+    good = random_gaussians(4, seed=0, sh_degree=0)
+    with pytest.raises(ValueError, match=rf"means must be \[N, 3\], got {re_tuple(shape)}"):
+        Gaussians(torch.zeros(shape, dtype=F64), good.log_scales, good.quats, good.logit_opacities,
+                  good.sh0, good.shN)
+
+
+def re_tuple(shape) -> str:
+    import re
+    return re.escape(str(tuple(shape)))
