@@ -12,13 +12,15 @@ def good():
     return random_scene(10, seed=0)
 
 
-@pytest.mark.parametrize("field,value,match", [
-    ("means", torch.zeros(10, 2), "means"),
-    ("log_scales", torch.zeros(9, 3), "log_scales"),
-    ("quats", torch.zeros(10, 3), "quats"),
-    ("logit_opacities", torch.zeros(10, 1), "logit_opacities"),
-    ("sh0", torch.zeros(10, 3), "sh0"),
-    ("shN", torch.zeros(10, 5, 3), "shN"),
+@pytest.mark.parametrize("field,value,match", [  # the field, the shape it needs and the one it got
+    ("means", torch.zeros(10, 2), r"means must be \[N, 3\], got \(10, 2\)"),
+    ("means", torch.zeros(10), r"means must be \[N, 3\], got \(10,\)"),
+    ("log_scales", torch.zeros(9, 3), r"log_scales must have shape \[10, 3\], got \[9, 3\]"),
+    ("quats", torch.zeros(10, 3), r"quats must have shape \[10, 4\], got \[10, 3\]"),
+    ("logit_opacities", torch.zeros(10, 1), r"logit_opacities must have shape \[10\], got \[10, 1\]"),
+    ("sh0", torch.zeros(10, 3), r"sh0 must have shape \[10, 1, 3\], got \[10, 3\]"),
+    ("shN", torch.zeros(10, 5, 3), r"shN must be \[N, K-1, 3\] with K in \(1, 4, 9, 16\), got \[10, 5, 3\]"),
+    ("shN", torch.zeros(10, 3), r"shN must be \[N, K-1, 3\] with K in \(1, 4, 9, 16\), got \[10, 3\]"),
 ])
 def test_wrong_shapes(field, value, match):
     params = good().params()
