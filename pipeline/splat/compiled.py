@@ -141,7 +141,8 @@ class CompiledBins:
             rects, kernels.depth_order(to_numpy(depths)), self.tiles_x, self.tiles_y)
 
     def forward(self, features: np.ndarray, workers: int):
-        """(image [H, W, D], final transmittance [H, W], walked [H, W]) float64 / int64."""
+        """(image [H, W, D] in the features' dtype, final transmittance [H, W] float64,
+        walked [H, W] int64)."""
         return load().composite_forward(self.gauss_ids, self.offsets, self.counts, self.packed,
                                         features, self.width, self.height, self.tiles_x,
                                         self.tile_size, workers)
@@ -153,8 +154,8 @@ class CompiledBins:
 
 
 class _CompiledComposite(torch.autograd.Function):
-    """Compositing by the compiled kernels; the backward sums per-intersection gradient rows into
-    per-Gaussian gradients with one ``index_add_`` (a fixed order: deterministic)."""
+    """Compositing by the compiled kernels; the backward sums the per-intersection gradient rows
+    into per-Gaussian gradients in row order (``kernels.sum_rows``: deterministic)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, bins):
@@ -170,8 +171,8 @@ class _CompiledComposite(torch.autograd.Function):
         row_start, row_ids = bins.walked_rows(ctx.walked)
         rows = load().composite_backward(
             bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0], bins.packed, ctx.feats,
-            ctx.final, ctx.walked, to_numpy(grad_image.double()), to_numpy(grad_final.double()), bins.tiles_x,
-            bins.tile_size, use_threads())
+            ctx.final, ctx.walked, to_numpy(grad_image.double()), to_numpy(grad_final.double()),
+            bins.tiles_x, bins.tile_size, use_threads())
         per_gauss = torch.from_numpy(load().sum_rows(row_ids, rows, ctx.n, ctx.feats))
         return per_gauss[:, 0:2], per_gauss[:, 2:5], per_gauss[:, 5], per_gauss[:, 6:], None
 
