@@ -21,6 +21,8 @@ def good():
     ("sh0", torch.zeros(10, 3), r"sh0 must have shape \[10, 1, 3\], got \[10, 3\]"),
     ("shN", torch.zeros(10, 5, 3), r"shN must be \[N, K-1, 3\] with K in \(1, 4, 9, 16\), got \[10, 5, 3\]"),
     ("shN", torch.zeros(10, 3), r"shN must be \[N, K-1, 3\] with K in \(1, 4, 9, 16\), got \[10, 3\]"),
+    ("shN", torch.zeros(9, 3, 3), r"shN must be \[N, K-1, 3\] with K in \(1, 4, 9, 16\), got \[9, 3, 3\]"),
+    ("shN", torch.zeros(10, 3, 2), r"shN must be \[N, K-1, 3\] with K in \(1, 4, 9, 16\), got \[10, 3, 2\]"),
 ])
 def test_wrong_shapes(field, value, match):
     params = good().params()
