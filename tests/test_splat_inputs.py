@@ -31,12 +31,21 @@ def test_wrong_shapes(field, value, match):
         Gaussians(**params)
 
 
-@pytest.mark.parametrize("field", ["means", "log_scales", "quats", "logit_opacities", "sh0"])
-def test_nan_parameters(field):
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("field", ["means", "log_scales", "quats", "logit_opacities", "sh0", "shN"])
+def test_non_finite_parameters_are_refused_by_field(field, bad):
     params = good().params()
     params[field] = params[field].clone()
-    params[field].view(-1)[0] = float("nan")
-    with pytest.raises(ValueError, match=field):
+    params[field].view(-1)[-1] = bad  # the last Gaussian: every row is checked, not only the first
+    with pytest.raises(ValueError, match=f"^{field} contains NaN or inf$"):
+        Gaussians(**params)
+
+
+def test_a_zero_quaternion_is_refused():
+    params = good().params()
+    params["quats"] = params["quats"].clone()
+    params["quats"][3] = 0.0  # one row only: the check is per Gaussian
+    with pytest.raises(ValueError, match="^quats contains a zero quaternion$"):
         Gaussians(**params)
 
 
