@@ -272,3 +272,16 @@ def test_means_of_the_wrong_shape_are_refused_with_the_shape(shape):
 def re_tuple(shape) -> str:
     import re
     return re.escape(str(tuple(shape)))
+
+
+def test_from_points_defaults_and_to_dtype():
+    """The documented defaults (degree 3, scale 0.01, opacity 0.1) and ``to`` converting every
+    field."""
+    points, colors = torch.zeros(2, 3), torch.full((2, 3), 0.5)
+    g = Gaussians.from_points(points, colors)
+    assert g.sh_degree == 3
+    assert torch.allclose(g.scales, torch.full((2, 3), 0.01), rtol=1e-6)
+    assert torch.allclose(g.opacities, torch.full((2,), 0.1), rtol=1e-6)
+    g64 = g.to(dtype=F64)
+    assert all(v.dtype == F64 for v in g64.params().values())
+    assert torch.equal(g64.means, points.double())
