@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from pipeline.splat import Gaussians
-from pipeline.splat.project import project, view_directions
+from pipeline.splat.project import active_sh_degree, project, view_directions
 from pipeline.splat.sh import sh_basis
 
 FEATURES = ("u", "v", "conic_a", "conic_b", "conic_c", "opacity", "r", "g", "b")
@@ -140,9 +140,7 @@ def feature_jacobian_compiled(gaussians: Gaussians, viewmat: Tensor, K: Tensor, 
     from pipeline.splat import compiled
     from pipeline.splat.project_kernels import feature_jacobian as kernel
     layout = param_layout(gaussians, groups)
-    degree = gaussians.sh_degree if sh_degree is None else sh_degree
-    if degree > gaussians.sh_degree:
-        raise ValueError(f"sh_degree {degree} exceeds the stored degree {gaussians.sh_degree}")
+    degree = active_sh_degree(gaussians, sh_degree)
     arrays = [compiled.to_numpy(v) for v in gaussians.params().values()]
     intr = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
     geometry, sh_slope, opacity_slope = (torch.from_numpy(x) for x in kernel(

@@ -227,10 +227,8 @@ def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: 
 
     Differentiable w.r.t. the Gaussians' raw parameters (not the camera); CPU tensors only.
     """
-    from pipeline.splat.project import Projection
-    sh_degree = gaussians.sh_degree if sh_degree is None else sh_degree
-    if sh_degree > gaussians.sh_degree:
-        raise ValueError(f"sh_degree {sh_degree} exceeds the stored degree {gaussians.sh_degree}")
+    from pipeline.splat.project import Projection, active_sh_degree
+    sh_degree = active_sh_degree(gaussians, sh_degree)
     view = viewmat.detach().double().contiguous().numpy()
     intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
     camera = (view, intr, int(width), int(height), int(sh_degree), float(near))

@@ -1,6 +1,7 @@
 """Compiled CPU kernels (numba) for tile binning, compositing and the per-view Fisher walk.
 
-NumPy arrays in, NumPy arrays out; no torch here (``compiled.py`` wraps them as a torch backend).
+NumPy arrays in, NumPy arrays out (``compiled.py`` wraps them as a torch backend); the 3DGS
+constants come from ``rasterize.py``, the torch path.
 The rules are those of ``rasterize.py`` and the 3DGS CUDA rasterizer, evaluated per pixel:
     power = -1/2 d^T Q d with d = pixel centre - mean2d, Q = [[a, b], [b, c]];
     alpha = min(ALPHA_MAX, opacity exp(power)); skipped when power > 0 or alpha < ALPHA_MIN;
@@ -26,14 +27,13 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from pipeline.splat.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN  # the rules have one source
+
 # prange loops only: numba would otherwise turn np.zeros & co. into parallel regions too, and a
 # job given one thread must never start the thread pool (its idle threads spin on a busy core)
 PRANGE_ONLY = {"prange": True, "comprehension": False, "reduction": False, "inplace_binop": False,
                "setitem": False, "numpy": False, "stencil": False, "fusion": False}
 
-ALPHA_MAX = 0.99
-ALPHA_MIN = 1.0 / 255.0
-T_MIN = 1e-4
 SKIP_MARGIN = 1e-6  # a pair is skipped without exp only when clearly below the alpha threshold
 PACKED = 8
 FISHER_ROW = 40  # 21 (S h h^T, upper triangle) + 18 (s_c w h) + 1 (w^2)

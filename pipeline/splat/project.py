@@ -71,12 +71,18 @@ def conic_2d(jac: Tensor, rs_cam: Tensor) -> tuple[Tensor, Tensor, Tensor, Tenso
     return conics, a, c, det, finite
 
 
-def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
-            sh_degree: int | None = None, near: float = 0.01) -> Projection:
-    """Project ``gaussians`` with world->camera ``viewmat`` [4, 4] and intrinsics ``K`` [3, 3]."""
+def active_sh_degree(gaussians: Gaussians, sh_degree: int | None) -> int:
+    """The SH degree to evaluate: ``sh_degree``, or the stored one when None; never above it."""
     sh_degree = gaussians.sh_degree if sh_degree is None else sh_degree
     if sh_degree > gaussians.sh_degree:
         raise ValueError(f"sh_degree {sh_degree} exceeds the stored degree {gaussians.sh_degree}")
+    return sh_degree
+
+
+def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
+            sh_degree: int | None = None, near: float = 0.01) -> Projection:
+    """Project ``gaussians`` with world->camera ``viewmat`` [4, 4] and intrinsics ``K`` [3, 3]."""
+    sh_degree = active_sh_degree(gaussians, sh_degree)
     rot, trans = viewmat[:3, :3], viewmat[:3, 3]
     p_cam = gaussians.means @ rot.T + trans  # [N, 3]
     x, y, z = p_cam.unbind(-1)
