@@ -208,3 +208,43 @@ def test_fisher_uncertainty_ranks_errors_better_than_random_on_one_sided_views(t
     for method in ("gopre", "fisherrf"):
         value = ause(sparsification_curve(psnr, scores[method]), oracle)
         assert value < random_ause, f"{method}: AUSE {value:.3f} not below random's {random_ause:.3f}"
+
+
+def test_strategies_see_the_model_at_the_active_sh_degree(scene_dir, monkeypatch):
+    """The Fisher must describe the rendered model: in early rounds the trainer renders below the
+    stored SH degree, and the strategy's Gaussians carry exactly the active coefficients."""
+    import pipeline.active.episode as episode_module
+    from pipeline.acquisition import make_strategy
+    seen = []
+
+    class Recorder:
+        name = "fisherrf"
+
+        def __init__(self):
+            self.inner = make_strategy("fisherrf")
+
+        def select(self, ctx, count=1):
+            seen.append(ctx.gaussians.sh_degree)
+            return self.inner.select(ctx, count)
+    monkeypatch.setattr(episode_module, "make_strategy", lambda name, **options: Recorder())
+    cfg = tiny_episode(strategy="fisherrf")
+    fit = cfg.fit
+    result = run_episode(load(scene_dir, cfg), cfg)
+    expected = [min(fit.sh_degree, r.iteration // fit.sh_degree_interval) for r in result.rounds[:-1]]
+    assert fit.sh_degree == 1 and expected[0] == 0  # the case: round 0 renders at degree 0
+    assert seen == expected
+    assert result.gaussians.sh_degree == min(fit.sh_degree, result.rounds[-1].iteration // fit.sh_degree_interval)
+
+
+def test_at_sh_degree_renders_as_the_full_model_at_that_degree():
+    import torch
+    from pipeline.splat import render
+    from pipeline.splat.scenes import orbit_cameras, random_scene
+    g = random_scene(30, seed=2, dtype=torch.float64, sh_degree=3)
+    cams = orbit_cameras(1, 16, 16, dtype=torch.float64)
+    for degree in range(4):
+        low = g.at_sh_degree(degree)
+        assert low.sh_degree == degree
+        assert torch.equal(render(low, cams).rgb, render(g, cams, sh_degree=degree).rgb)
+    with pytest.raises(ValueError, match=r"sh degree 4 outside 0..3 \(the stored degree\)"):
+        g.at_sh_degree(4)

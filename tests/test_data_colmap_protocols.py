@@ -142,6 +142,17 @@ def test_global_and_goal_protocols_on_blender_layout(generated):
     assert set(goal.probe_ids) <= train_inside
 
 
+def test_probe_fraction_counts_all_views_of_the_pool_split_not_the_sector(generated):
+    """Paper Table 5: K = N/4 ... N/64 of all N views; under the goal protocol only the sector's
+    views can be probes, so K is then capped at their number."""
+    glob = build_protocol(generated, ProtocolConfig("global", probes=0.125))
+    assert glob.probes == 5  # 1/8 of the 40 train views (not of the 38 left after the initial 2)
+    goal = build_protocol(generated, ProtocolConfig("goal", probes=0.125))
+    assert goal.probes == 5 < len(goal.probe_ids)  # 1/8 of 40, not 1/8 of the sector's views
+    capped = build_protocol(generated, ProtocolConfig("goal", probes=0.9))
+    assert capped.probes == len(capped.probe_ids) < 36
+
+
 def test_goal_protocol_on_colmap_applies_llff_inside_the_sector(bonsai):
     views = build_protocol(bonsai, ProtocolConfig("goal"))
     assert views.pool_split == views.test_split == "all"

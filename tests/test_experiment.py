@@ -52,9 +52,22 @@ def test_every_preset_composes_at_paper_scale_and_says_how_to_run_it(preset):
     assert text.startswith("# @package _global_") and "pipeline-run experiment=" + preset in text
     jobs = expand_jobs(composed([f"experiment={preset}", "data_root=/datasets"]))
     assert jobs and len({j["config_hash"] for j in jobs}) == len(jobs)
-    if preset not in ("demo", "debug"):
+    if preset not in ("demo", "debug", "science"):
         assert jobs[0]["splat"]["preset"] == "paper"
         assert all(j["scene_path"].startswith("/datasets/") for j in jobs)
+
+
+def test_method_presets_carry_their_protocol_and_splat_overrides():
+    """fisherrf_released reloads the model after each pick as the released code does; the other
+    methods keep the sweep's policy; popgs defaults to the POp-GS paper's block variant."""
+    jobs = {j["method"]: j for j in expand_jobs(composed([
+        "method=[fisherrf,fisherrf_released,popgs,popgs_diag]", "splat.post_selection=continue"]))}
+    assert jobs["fisherrf_released"]["splat"]["post_selection"] == "reload"
+    assert jobs["fisherrf_released"]["options"] == {"lam": 1e-6, "hessian": "fisherrf_released"}
+    assert jobs["fisherrf"]["splat"]["post_selection"] == "continue"
+    assert jobs["popgs"]["options"]["variant"] == "block" and jobs["popgs_diag"]["options"]["variant"] == "diag"
+    with pytest.raises(ConfigError, match="method.fisherrf: .*hessian must be one of"):
+        expand_jobs(composed(["method=[fisherrf]", "+method.fisherrf.options.hessian=nope"]))
 
 
 @pytest.mark.parametrize("preset", PRESETS)

@@ -210,3 +210,45 @@ def test_float32_at_production_settings_matches_float64():
     assert ((rgb32 - rgb64).norm() / rgb64.norm()).item() < 1e-5, "image float32 vs float64"
     for name, grad in grad64.items():
         assert ((grad32[name] - grad).norm() / grad.norm()).item() < 1e-4, f"gradient of {name}"
+
+
+def released_fisherrf_brute_force(g, cams):
+    """FisherRF's released Hessian by autograd, from its description (design notes): geometry and
+    opacity entries are sum_p (sum_c dI_pc / d theta_act)^2 w.r.t. the activated parameter
+    (means as is, scale = exp(log-scale), opacity = sigmoid(logit)), multiplied once by the
+    activation's derivative; SH entries are per-channel sums of squares. [N, 3 + 3 + 1 + 3 + 3K]."""
+    n = len(g)
+    scales, opac = g.log_scales.exp(), torch.sigmoid(g.logit_opacities)
+
+    def channel_summed(means, s, o):
+        h = Gaussians(**{**g.params(), "means": means, "log_scales": s.log(), "logit_opacities": torch.logit(o)})
+        return render(h, cams, BG, settings=SETTINGS).rgb.sum(-1).reshape(-1)
+    jm, js, jo = torch.autograd.functional.jacobian(channel_summed, (g.means, scales, opac))
+    means = jm.reshape(-1, n, 3).square().sum(0)
+    log_scales = js.reshape(-1, n, 3).square().sum(0) * scales          # exp' = exp, once
+    opacity = jo.reshape(-1, n).square().sum(0) * opac * (1 - opac)      # sigmoid', once
+    sh = torch.cat([j.square().sum(0) for j in jacobians(g, cams, ("sh0", "shN"))], dim=1)
+    return torch.cat([means, log_scales, opacity[:, None], sh], dim=1)
+
+
+@pytest.mark.parametrize("backend", ["tiles", "compiled"])
+def test_released_fisherrf_hessian_matches_its_description_by_autograd(backend):
+    from dataclasses import replace
+    from pipeline.acquisition.fisherrf import FISHERRF_GROUPS
+    if backend == "compiled":
+        pytest.importorskip("numba")
+    g = random_scene(25, seed=21, dtype=F64, sh_degree=1, opacity_range=(0.2, 0.95))
+    cams = orbit_cameras(1, 13, 11, dtype=F64, radius=2.4, phase=1)
+    spec = FisherSpec(FISHERRF_GROUPS, hessian="fisherrf_released")
+    ours = view_fisher(g, cams, BG, spec, replace(SETTINGS, backend=backend))[0]
+    ref = released_fisherrf_brute_force(g, cams)
+    exact = view_fisher(g, cams, BG, FisherSpec(FISHERRF_GROUPS), SETTINGS)[0]
+    assert ours.shape == ref.shape == (25, 3 + 3 + 1 + 3 + 9)
+    assert ((ours - ref).norm() / ref.norm()).item() < 1e-10
+    assert torch.allclose(ours[:, 7:], exact[:, 7:], rtol=1e-10, atol=0)  # SH entries are exact
+    assert ((ours[:, :7] - exact[:, :7]).norm() / exact[:, :7].norm()).item() > 1e-2
+
+
+def test_fisher_spec_rejects_an_unknown_hessian():
+    with pytest.raises(ValueError, match="hessian must be one of .*'exact', 'fisherrf_released'.* got 'exakt'"):
+        FisherSpec(hessian="exakt")

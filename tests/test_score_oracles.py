@@ -92,6 +92,32 @@ def test_fisherrf_score_is_its_information_gain_without_rotations(setup):
     assert sel.chosen == [max(expected, key=expected.get)]  # argmax
 
 
+def released_hessian(g: Gaussians, cam: Cameras) -> torch.Tensor:
+    """FisherRF's released Hessian, from its description: (sum_c dI_c / d theta_act)^2 summed over
+    pixels for means, scales (= exp) and opacity (= sigmoid), times the activation's derivative
+    once; SH entries per-channel sums of squares. Flattened in FisherRF's group order."""
+    scales, opac = g.log_scales.exp(), torch.sigmoid(g.logit_opacities)
+
+    def summed(means, s, o):
+        h = Gaussians(**{**g.params(), "means": means, "log_scales": s.log(), "logit_opacities": torch.logit(o)})
+        return render(h, cam, BACKGROUND, settings=DENSE).rgb.sum(-1).reshape(-1)
+    jm, js, jo = torch.autograd.functional.jacobian(summed, (g.means, scales, opac), vectorize=True)
+    sq = [j.reshape(j.shape[0], -1).square().sum(0) for j in (jm, js, jo)]
+    colour = brute_force_fisher(g, cam)
+    return torch.cat([sq[0], sq[1] * scales.reshape(-1), sq[2] * opac * (1 - opac),
+                      colour["sh0"], colour["shN"]])
+
+
+def test_fisherrf_released_scores_with_the_released_hessian(setup):
+    g, cams, _ = setup
+    h = released_hessian(g, cams[0])
+    expected = {c: float((released_hessian(g, cams[c]) / (h + LAM)).sum()) for c in (1, 2, 3)}
+    sel = make_strategy("fisherrf", lam=LAM, hessian="fisherrf_released").select(context(g, cams))
+    for c, value in expected.items():
+        assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"fisherrf_released score of view {c}"
+    assert sel.chosen == [max(expected, key=expected.get)]
+
+
 def test_popgs_diag_score_is_the_diagonal_log_det_gain(setup):
     g, cams, fishers = setup
     h = flat(fishers[0])

@@ -139,14 +139,15 @@ def reduce_pool(candidate_ids: list[int], keep_fraction: float, generator: torch
     return seeded_subset(candidate_ids, max(1, round(len(candidate_ids) * keep_fraction)), generator)
 
 
-def probe_count(k: int | float, pool_size: int) -> int:
-    """Number of probe poses K: an int is used as is (capped at the pool), a float in (0, 1) is a
-    fraction of the pool (the paper: 25 for Blender, 1/8 of the views for real scenes); >= 1."""
+def probe_count(k: int | float, views: int) -> int:
+    """Number of probe poses K: an int is used as is (capped at ``views``), a float in (0, 1) is
+    a fraction of ``views`` (the paper: 25 for Blender, 1/8 of all N views of a real scene,
+    Table 5: N/4 ... N/64); >= 1."""
     if isinstance(k, float) and 0 < k < 1:
-        return max(1, round(k * pool_size))
+        return max(1, round(k * views))
     if int(k) < 1:
         raise ValueError(f"probe count must be >= 1 or a fraction in (0, 1), got {k}")
-    return min(int(k), pool_size)
+    return min(int(k), views)
 
 
 def sample_probes(pool_ids: list[int], k: int | float, generator: torch.Generator) -> list[int]:

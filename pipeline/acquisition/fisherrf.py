@@ -1,11 +1,15 @@
-"""``fisherrf``: FisherRF as released, score = sum_i F_x,i / (H_train,i + lambda), argmax.
+"""``fisherrf``: FisherRF, score = sum_i F_x,i / (H_train,i + lambda), argmax; a greedy batch adds
+each pick's F to H_train.
 
-FisherRF's parameter set omits rotations (``quats``); the Fisher here is exact (channels
-squared separately), unlike the released CUDA kernel (see design notes)."""
+FisherRF's parameter set omits rotations (``quats``). ``hessian="exact"`` (default) uses the exact
+diagonal Fisher (channels squared separately); ``hessian="fisherrf_released"`` the released CUDA
+kernel's Hessian (channel-summed derivative squared, activations applied once; see
+``FisherSpec``). The method preset ``fisherrf_released`` pairs it with the released code's model
+reload after every pick (``splat.post_selection=reload``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from pipeline.acquisition.base import (Selection, SelectionContext, greedy_pick, pool_and_train_fishers,
                                        timed_selection)
@@ -18,7 +22,11 @@ FISHERRF_GROUPS = ("means", "log_scales", "logit_opacities", "sh0", "shN")
 class FisherRFStrategy:
     name: str = "fisherrf"
     lam: float = 1e-6
-    spec: FisherSpec = FisherSpec(groups=FISHERRF_GROUPS)
+    hessian: str = "exact"
+    spec: FisherSpec = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.spec = FisherSpec(groups=FISHERRF_GROUPS, hessian=self.hessian)
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         def run(order):

@@ -173,14 +173,14 @@ class Episode:
         return time.perf_counter() - start
 
     def evaluate_curve(self) -> tuple[float, float]:
-        m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.curve_ids],
+        m = evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.curve_ids],
                            self.images(self.test, self.curve_ids), self.background).mean()
         return m["psnr"], m["ssim"]
 
     def record(self, train_seconds: float) -> RoundRecord:
         psnr, ssim = self.evaluate_curve()
         return RoundRecord(len(self.records), len(self.taken), self.trainer.step, psnr, ssim,
-                           len(self.trainer.gaussians), round(train_seconds, 3))
+                           len(self.trainer.rendered_gaussians), round(train_seconds, 3))
 
     def draw_probes(self, round_index: int) -> list[int]:
         """K probe ids for this round, redrawn every round independently of the selection history
@@ -195,7 +195,7 @@ class Episode:
         if self.cfg.pool_keep_fraction < 1:
             remaining = reduce_pool(remaining, self.cfg.pool_keep_fraction, self.generator)
         count = min(self.cfg.views_per_round, self.views.budget - len(self.taken), len(remaining))
-        ctx = SelectionContext(self.trainer.gaussians, self.pool.cameras[remaining], remaining,
+        ctx = SelectionContext(self.trainer.rendered_gaussians, self.pool.cameras[remaining], remaining,
                                self.pool.cameras[self.taken], self.background, self.generator,
                                self.pool.cameras[rec.probes], self.images(self.pool, self.taken),
                                self.trainer.settings)
@@ -235,11 +235,11 @@ class Episode:
         self.records.append(rec)
         drop = last_round.test_psnr - rec.test_psnr if last_round is not None else 0.0
         lpips = LpipsMetric() if self.cfg.lpips else None
-        m = evaluate_views(self.trainer.gaussians, self.test.cameras[self.views.test_ids],
+        m = evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.views.test_ids],
                            self.images(self.test, self.views.test_ids), self.background, lpips)
         self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "LPIPS disabled in the config",
                       "test_views": len(self.views.test_ids), "per_view_psnr": m.psnr,
-                      "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.gaussians),
+                      "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.rendered_gaussians),
                       "iterations": self.trainer.step, "final_phase_iterations": iterations,
                       "schedule": self.schedule.to_dict(), "curve_psnr_drop": round(drop, 3),
                       "degraded": bool(drop > DEGRADED_DB),
@@ -274,7 +274,7 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
                          list(ep.views.initial_ids), ep.taken[len(ep.views.initial_ids):],
                          [r.probes for r in ep.records[:-1]], ep.views.test_split,
                          list(ep.views.test_ids), ep.curve_ids, ep.records, ep.final,
-                         round(time.perf_counter() - start, 2), ep.trainer.gaussians)
+                         round(time.perf_counter() - start, 2), ep.trainer.rendered_gaussians)
 
 
 def _checkpoint(ep: Episode, folder: Path | None, key: str, on_round, rec: RoundRecord) -> None:

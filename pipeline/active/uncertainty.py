@@ -83,7 +83,7 @@ def run_uncertainty_experiment(scene: Scene, episode: EpisodeConfig, cfg: Uncert
     trainer = Trainer(initial_gaussians(scene, episode.with_changes(fit=fit)), train_cams, train_images,
                       fit, scene.background)
     trainer.train(fit.iterations)
-    g = trainer.gaussians
+    g = trainer.rendered_gaussians
     test_cams, test_images = test.cameras[test_ids], test.images.stack(test_ids)
     psnr = np.array(evaluate_views(g, test_cams, test_images, scene.background, ssim=False).psnr)
     scores, s = fisher_uncertainties(g, train_cams, test_cams, scene.background, cfg)

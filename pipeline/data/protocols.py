@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from pipeline.acquisition.base import probe_count
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold, azimuths_deg, estimate_up, manifold_from_dict, member_ids
 from pipeline.data.scene import Scene
@@ -29,7 +30,8 @@ class ProtocolConfig:
     kind: str = "global"
     initial_views: int | None = None      # None: 2 for Blender, 4 for real scenes
     budget: int | None = None             # total views; None: 10 for Blender/sparse, 20 otherwise
-    probes: int | float | None = None     # K, or a fraction of the views; None: 25 / 1/8
+    probes: int | float | None = None     # K, or a fraction of all N views of the pool split
+                                          # (paper Table 5: N/4 ... N/64); None: 25 / 1/8
     manifold: dict = field(default_factory=lambda: {"kind": "sector", "start_deg": 0.0,
                                                      "width_deg": 120.0, "clockwise": True})
     llff_hold: int = 8
@@ -52,7 +54,7 @@ class ProtocolViews:
     test_ids: list[int]
     probe_ids: list[int]         # pool views the probes are drawn from
     budget: int
-    probes: int | float
+    probes: int                  # K, resolved: a fraction counts all views of the pool split
     up: list[float]
 
     @property
@@ -138,6 +140,6 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
     if budget > initial + len(pool):
         raise ValueError(f"budget={budget} exceeds the {initial} initial views plus the {len(pool)} "
                          f"views the pool can still give")
-    return ProtocolViews(pool_split, pool, init, test_split, test_all,
-                         [i for i in probe_pool if i not in set(init)] or probe_pool, budget, probes,
-                         up.tolist())
+    probe_ids = [i for i in probe_pool if i not in set(init)] or probe_pool
+    k = min(probe_count(probes, len(pool_cams)), len(probe_ids))
+    return ProtocolViews(pool_split, pool, init, test_split, test_all, probe_ids, budget, k, up.tolist())

@@ -25,7 +25,7 @@ from pipeline.data.protocols import ProtocolConfig
 from pipeline.experiment.provenance import code_version
 
 JOB_KINDS = ("episode", "uncertainty")
-METHOD_KEYS = {"strategy", "options", "protocol"}
+METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: overrides for this method
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips"}
 NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")
@@ -107,7 +107,8 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
                    "scene_path": str(Path(str(dset["root"])) / scene), "generate": dset.get("generate"),
                    "method": mname, "strategy": method["strategy"],
                    "options": copy.deepcopy(method.get("options") or {}),
-                   "protocol": {**protocol, **(method.get("protocol") or {})}, "splat": dict(splat),
+                   "protocol": {**protocol, **(method.get("protocol") or {})},
+                   "splat": {**splat, **(method.get("splat") or {})},
                    "seed": int(seed), "renders": int(job_cfg["renders"]),
                    "uncertainty": _container(cfg, "uncertainty") if job_cfg["kind"] == "uncertainty" else None}
             for key, value in axes.items():

@@ -127,6 +127,12 @@ def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: P
               f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).", flush=True)
 
 
+def execution_order(jobs: list[dict]) -> list[dict]:
+    """Seed by seed (then the config's order): a sweep stopped early has every method of the
+    first seeds, which is what paired comparisons need, rather than some methods on all seeds."""
+    return sorted(jobs, key=lambda j: (j["seed"], j["index"]))
+
+
 def run_sweep(cfg: DictConfig) -> SweepSummary:
     start = time.perf_counter()
     jobs = expand_jobs(cfg)
@@ -137,7 +143,7 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
     records = RecordsFile(output_dir)
     tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
     done = records.finished_hashes() | tracker.finished_hashes()
-    todo = [j for j in jobs if j["config_hash"] not in done]
+    todo = execution_order([j for j in jobs if j["config_hash"] not in done])
     print(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
           f"{len(todo)} to run; output in {output_dir}", flush=True)
     warn_stale(str(cfg.name), records, {j["config_hash"] for j in jobs} & done, output_dir)

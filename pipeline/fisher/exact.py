@@ -35,12 +35,29 @@ PHI_EXPONENTS = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
 MOMENT_EXPONENTS = tuple((a, b) for a in range(5) for b in range(5) if a + b <= 4)  # 15
 
 
+HESSIANS = ("exact", "fisherrf_released")
+
+
 @dataclass(frozen=True)
 class FisherSpec:
-    """Which raw parameter groups enter the Fisher (FisherRF's set omits ``quats``)."""
+    """Which raw parameter groups enter the Fisher (FisherRF's set omits ``quats``), and which
+    Hessian: ``exact`` = diag(J^T J), channels squared separately; ``fisherrf_released`` = the
+    released FisherRF kernel's: geometry and opacity entries square the channel-summed image
+    derivative w.r.t. the *activated* parameter (scale = exp, opacity = sigmoid) and carry the
+    activation's derivative once, not squared; SH entries are per-channel sums of squares (exact).
+    """
 
     groups: tuple[str, ...] = PARAM_GROUPS
     sh_degree: int | None = None  # active SH degree; None = stored degree
+    hessian: str = "exact"
+
+    def __post_init__(self) -> None:
+        if self.hessian not in HESSIANS:
+            raise ValueError(f"Fisher hessian must be one of {HESSIANS}, got {self.hessian!r}")
+
+    @property
+    def channel_summed(self) -> bool:
+        return self.hessian == "fisherrf_released"
 
 
 def _moment_tables(tile_size: int, dtype, device) -> tuple[Tensor, Tensor]:
@@ -178,10 +195,11 @@ def _channel_sum_of_squares(s: Tensor) -> Tensor:
     return torch.addcmul(torch.addcmul(c0 * c0, c1, c1), c2, c2)
 
 
-def feature_fisher(walk: ViewWalk) -> tuple[Tensor, Tensor]:
+def feature_fisher(walk: ViewWalk, channel_summed: bool = False) -> tuple[Tensor, Tensor]:
     """(seen [M], G [M, 9, 9] float64): the Gaussians the walk reached (sorted ids) and for each
     the sum over pixels and channels of d I / d features outer products (every other Gaussian
-    has G = 0).
+    has G = 0). ``channel_summed``: the outer products of the channel-summed derivative
+    sum_c d I_c / d features instead (``fisherrf_released``).
 
     Per walked intersection (early termination leaves most listed ones unwalked), tile-local
     pixel moments are shifted to the Gaussian's mean (``centre_moments``), summed per Gaussian,
@@ -194,7 +212,8 @@ def feature_fisher(walk: ViewWalk) -> tuple[Tensor, Tensor]:
         s, w = ch.s, ch.w
         ta, pix, k = w.shape
         # left-multiplying by the small [15, P] / [6, P] tables keeps the big tensors in place
-        sq = torch.matmul(walk.mono.T, _channel_sum_of_squares(s))  # [Ta, 15, K]
+        weight = s.sum(-1).square() if channel_summed else _channel_sum_of_squares(s)
+        sq = torch.matmul(walk.mono.T, weight)  # [Ta, 15, K]
         m4.append(sq.transpose(1, 2).reshape(-1, sq.shape[1])[keep])
         sw = torch.matmul(walk.phi.T, (s * w[..., None]).reshape(ta, pix, k * 3))  # [Ta, 6, K*3]
         m2.append(sw.reshape(ta, 6, k, 3).permute(0, 2, 1, 3).reshape(-1, 6, 3)[keep])
@@ -209,13 +228,27 @@ def feature_fisher(walk: ViewWalk) -> tuple[Tensor, Tensor]:
     mu2_sum = torch.zeros(n, 6, 3, dtype=f64, device=device).index_add_(0, ids, mu2.transpose(0, 1))
     w2_sum = torch.zeros(n, dtype=f64, device=device).index_add_(0, ids, torch.cat(w2).double())
     basis = _centred_basis(walk.conics[seen].double(), walk.opacities[seen].double())  # [M, 6, 6]
-    G = torch.zeros(n, 9, 9, dtype=f64, device=device)
-    G[:, :6, :6] = basis @ mu4_sum[:, walk.pair] @ basis.transpose(1, 2)
-    cross = basis @ mu2_sum
+    geometry = basis @ mu4_sum[:, walk.pair] @ basis.transpose(1, 2)
+    return seen, assemble_feature_fisher(geometry, basis @ mu2_sum, w2_sum, channel_summed)
+
+
+def assemble_feature_fisher(geometry: Tensor, cross: Tensor, w2: Tensor,
+                            channel_summed: bool) -> Tensor:
+    """G [M, 9, 9] from its blocks: geometry [M, 6, 6] (already of the chosen kind), the
+    per-channel cross sums sum_p s_c w h [M, 6, 3] and sum_p w^2 [M]. Channel-summed: the
+    derivative sum_c dI_c has cross sum_c' (s_c' w h) with every colour and colour block
+    sum_p w^2 in every entry (each colour feature moves its own channel by w)."""
+    n = geometry.shape[0]
+    G = geometry.new_zeros(n, 9, 9)
+    G[:, :6, :6] = geometry
+    if channel_summed:
+        cross = cross.sum(-1, keepdim=True).expand(n, 6, 3)
+        G[:, 6:, 6:] = w2[:, None, None].expand(n, 3, 3)
+    else:
+        G[:, 6:, 6:] = torch.diag_embed(w2[:, None].expand(n, 3))
     G[:, :6, 6:] = cross
     G[:, 6:, :6] = cross.transpose(1, 2)
-    G[:, 6:, 6:] = torch.diag_embed(w2_sum[:, None].expand(n, 3))
-    return seen, G
+    return G
 
 
 def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
@@ -251,7 +284,7 @@ _UPPER = [(a, b) for a in range(6) for b in range(a, 6)]
 
 
 def feature_fisher_compiled(proj, width: int, height: int, background: Tensor,
-                            tile_size: int) -> tuple[Tensor, Tensor]:
+                            tile_size: int, channel_summed: bool = False) -> tuple[Tensor, Tensor]:
     """``feature_fisher`` by the compiled walk: (seen [M], G [M, 9, 9] float64).
 
     The kernel sums, per walked intersection, S h h^T, s_c w h and w^2 at each pixel's own offset
@@ -267,18 +300,16 @@ def feature_fisher_compiled(proj, width: int, height: int, background: Tensor,
     rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
                                bins.packed, colors, final, walked,
                                compiled.to_numpy(background.double()), bins.tiles_x, tile_size,
-                               workers)
+                               channel_summed, workers)
     seen, ids = torch.unique(torch.from_numpy(row_ids), return_inverse=True)
     sums = torch.zeros(seen.numel(), rows.shape[1], dtype=torch.float64).index_add_(
         0, ids, torch.from_numpy(rows))
-    G = sums.new_zeros(seen.numel(), 9, 9)
+    geometry = sums.new_zeros(seen.numel(), 6, 6)
     a, b = zip(*_UPPER)
-    G[:, a, b] = sums[:, :21]
-    G[:, b, a] = sums[:, :21]
-    cross = sums[:, 21:39].reshape(-1, 6, 3)
-    G[:, :6, 6:] = cross
-    G[:, 6:, :6] = cross.transpose(1, 2)
-    G[:, 6:, 6:] = torch.diag_embed(sums[:, 39:40].expand(-1, 3))
+    geometry[:, a, b] = sums[:, :21]
+    geometry[:, b, a] = sums[:, :21]
+    G = assemble_feature_fisher(geometry, sums[:, 21:39].reshape(-1, 6, 3), sums[:, 39],
+                                channel_summed)
     return seen.to(proj.means2d.device), G
 
 
@@ -287,19 +318,23 @@ class ViewFactors:
     """One view's Fisher factors for the M Gaussians its walk reached (all others have F = 0).
 
     seen [M] sorted Gaussian ids; jacobian: ``FeatureJacobian`` of those M Gaussians;
-    feature_fisher [M, 9, 9] float64 (G); walk: the view's ``ViewWalk``.
+    feature_fisher [M, 9, 9] float64 (G); walk: the view's ``ViewWalk``; column_factor [M, P]:
+    for ``fisherrf_released``, the activation derivatives applied once to the Fisher of the
+    activated parameters (``jacobian`` is then w.r.t. those), else None.
     """
 
     seen: Tensor
     jacobian: FeatureJacobian
     feature_fisher: Tensor
     walk: ViewWalk
+    column_factor: Tensor | None = None
 
     def fisher_diagonal(self, n: int) -> Tensor:
-        """diag(A^T G A) for all n Gaussians, [N, P] float64."""
+        """diag(A^T G A) for all n Gaussians, [N, P] float64 (times ``column_factor``)."""
         width = sum(w for _, w in self.jacobian.layout)
         out = self.feature_fisher.new_zeros(n, width)
-        out[self.seen] = self.jacobian.fisher_diagonal(self.feature_fisher)
+        diag = self.jacobian.fisher_diagonal(self.feature_fisher)
+        out[self.seen] = diag if self.column_factor is None else diag * self.column_factor
         return out
 
     def feature_covariance(self, posterior_var: Tensor) -> Tensor:
@@ -308,6 +343,24 @@ class ViewFactors:
         cov = self.feature_fisher.new_zeros(posterior_var.shape[0], 9, 9)
         cov[self.seen] = torch.einsum("nip,np,njp->nij", A, posterior_var[self.seen].double(), A)
         return cov
+
+
+def activated_once(jac: FeatureJacobian, log_scales: Tensor) -> tuple[FeatureJacobian, Tensor]:
+    """FisherRF's activation rule: (the Jacobian w.r.t. scale = exp(log-scale) and opacity =
+    sigmoid(logit) instead of the raw parameters, the factor [M, P] each Fisher column is then
+    multiplied by once: the scale for log-scales, sigmoid' for the opacity, 1 elsewhere).
+
+    log_scales [M, 3] of the Jacobian's M Gaussians."""
+    geometry, slope = jac.geometry.clone(), jac.opacity_slope
+    factor = geometry.new_ones(geometry.shape[0], sum(w for _, w in jac.layout), dtype=torch.float64)
+    for group, cols, geo_cols in jac.column_blocks():
+        if group == "log_scales":
+            scales = log_scales.exp().to(geometry.dtype)
+            geometry[:, :, geo_cols] = geometry[:, :, geo_cols] / scales[:, None, :]
+            factor[:, cols] = scales.double()
+        elif group == "logit_opacities":
+            factor[:, cols] = slope.double()[:, None]
+    return replace(jac, geometry=geometry, opacity_slope=torch.ones_like(slope)), factor
 
 
 def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
@@ -332,13 +385,18 @@ def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
             proj = projector(gaussians.detach(), *view, spec.sh_degree, settings.near)
         if backend == "compiled":
             walk = None
-            seen, G = feature_fisher_compiled(proj, cams.width, cams.height, bg, settings.tile_size)
+            seen, G = feature_fisher_compiled(proj, cams.width, cams.height, bg, settings.tile_size,
+                                              spec.channel_summed)
         else:
             walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
-            seen, G = feature_fisher(walk)
+            seen, G = feature_fisher(walk, spec.channel_summed)
         jacobian = feature_jacobian_compiled if backend == "compiled" else feature_jacobian
         jac = jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree, settings.near)
-        yield ViewFactors(seen, jac, G, walk)
+        if spec.channel_summed:
+            jac, factor = activated_once(jac, gaussians.log_scales[seen])
+            yield ViewFactors(seen, jac, G, walk, factor)
+        else:
+            yield ViewFactors(seen, jac, G, walk)
 
 
 def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,

@@ -55,7 +55,7 @@ class FeatureJacobian:
     opacity_slope: Tensor
     sh_slope: Tensor
 
-    def _blocks(self):
+    def column_blocks(self):
         """Yield (group, its column slice in the flattened layout, its column slice in
         ``geometry`` for a geometric group else None)."""
         start, geo_start = 0, 0
@@ -78,7 +78,7 @@ class FeatureJacobian:
         geo = self.geometry.to(G.dtype)
         geo_f = ((G[:, rows][:, :, rows] @ geo) * geo).sum(1) if geo.shape[2] else None  # [N, Q]
         out = []
-        for group, _, geo_cols in self._blocks():
+        for group, _, geo_cols in self.column_blocks():
             if geo_cols is not None:
                 out.append(geo_f[:, geo_cols])
             elif group == "logit_opacities":
@@ -92,7 +92,7 @@ class FeatureJacobian:
         """A [N, 9, P] (geometry dtype)."""
         n = self.geometry.shape[0]
         A = self.geometry.new_zeros(n, 9, sum(w for _, w in self.layout))
-        for group, cols, geo_cols in self._blocks():
+        for group, cols, geo_cols in self.column_blocks():
             if geo_cols is not None:
                 A[:, list(GEOMETRIC_ROWS), cols] = self.geometry[:, :, geo_cols]
             elif group == "logit_opacities":

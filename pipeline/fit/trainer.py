@@ -98,6 +98,12 @@ class Trainer:
         return Gaussians(**{k: v.detach() for k, v in self.params.items()})
 
     @property
+    def rendered_gaussians(self) -> Gaussians:
+        """The model as it renders now: SH truncated to the active degree (what evaluation, the
+        Fisher, the acquisition strategies and the saved result use)."""
+        return self.gaussians.at_sh_degree(self.active_sh_degree)
+
+    @property
     def active_sh_degree(self) -> int:
         return min(self.config.sh_degree, self.step // max(self.config.sh_degree_interval, 1))
 
@@ -225,7 +231,7 @@ def fit(gaussians: Gaussians, cameras: Cameras, images: Tensor, config: FitConfi
     """Train from ``gaussians`` for ``config.iterations`` steps and return the fitted Gaussians."""
     trainer = Trainer(gaussians, cameras, images, config, background)
     trainer.train(config.iterations, progress=progress)
-    return trainer.gaussians
+    return trainer.rendered_gaussians
 
 
 @torch.no_grad()

@@ -2,6 +2,7 @@
 
     pipeline-report outputs/demo                      # -> reports/demo/
     pipeline-report outputs/table1_global --out reports/table1
+    pipeline-report outputs/science --reference fisherrf   # paired differences against fisherrf
     pipeline-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
 
 Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
@@ -23,6 +24,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="default: reports/<sweep name>")
     parser.add_argument("--mlflow-uri", default=None, help="read the runs from MLflow instead")
     parser.add_argument("--experiment", default=None, help="MLflow experiment (= sweep name)")
+    parser.add_argument("--reference", default=None,
+                        help="method the paired comparisons are against (default: gopre when it ran)")
     args = parser.parse_args(argv)
     try:
         if args.mlflow_uri or args.experiment:
@@ -35,7 +38,7 @@ def main(argv=None) -> int:
         else:
             frame, source = load_records(args.source), args.source
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
-        summary = make_report(source, out, frame)
+        summary = make_report(source, out, frame, args.reference)
     except (FileNotFoundError, ValueError) as err:
         print(f"pipeline-report: error: {err}", file=sys.stderr)
         return 1

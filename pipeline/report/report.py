@@ -13,7 +13,9 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.report import figures
-from pipeline.report.tables import Table, build_table, to_latex, to_markdown
+from pipeline.report.stats import paired_comparisons, with_curve_area
+from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
+                                    to_latex, to_markdown)
 
 RECORDS = "records.parquet"
 
@@ -53,25 +55,71 @@ def degraded_jobs(final: pd.DataFrame) -> list[str]:
             f"{r['curve_psnr_drop']:.2f} dB below its last round" for _, r in bad.iterrows()]
 
 
-def episode_tables(frame: pd.DataFrame, title: str) -> list[Table]:
+def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None) -> list:
+    """The main table; with sweep axes and several methods, a methods x datasets table per
+    setting; and the paired comparison against ``reference`` (default: gopre when it ran)."""
     final = _finished(frame, "final", "episode")
     if final.empty:
         return []
+    final = with_curve_area(final, _finished(frame, "round", "episode"))
+    final = final.assign(setting=final["setting"].fillna(""))
     methods = list(dict.fromkeys(final["method"]))
-    if (final["setting"].fillna("") != "").any():
-        final = final.assign(row=[f"{m}, {s}" if len(methods) > 1 else s
-                                  for m, s in zip(final["method"], final["setting"])])
-        table = build_table(final, title, "row", None,
-                            ["psnr", "ssim", "per_candidate_ms", "selection_seconds"])
+    settings = list(dict.fromkeys(final["setting"]))
+    tables: list = []
+    if settings != [""]:
+        rows = final.assign(row=[f"{m}, {s}" if len(methods) > 1 else s
+                                 for m, s in zip(final["method"], final["setting"])])
+        table = build_table(rows, title, "row", None,
+                            ["psnr", "psnr_auc", "ssim", "per_candidate_ms", "selection_seconds"])
+        tables.append(table)
+        if len(methods) > 1:
+            tables += [build_table(final[final["setting"] == s].rename(columns={"method": "Method"}),
+                                   f"{title}, {s}: mean ± std over seeds", "Method", "dataset",
+                                   ["psnr", "psnr_auc"], methods) for s in settings]
     else:
         table = build_table(final.rename(columns={"method": "Method"}), title, "Method", "dataset",
-                            ["psnr", "ssim", "lpips"], methods)
+                            ["psnr", "psnr_auc", "ssim", "lpips"], methods)
+        tables.append(table)
     bad = degraded_jobs(final)
     if bad:
         table.notes.append(f"{len(bad)} job(s) in these cells ended on a degraded model (final PSNR "
                            f"more than 3 dB below the last round's on the same views): "
                            + "; ".join(bad))
-    return [table]
+    return tables + paired_tables(final, title, methods, settings, reference)
+
+
+def paired_tables(final: pd.DataFrame, title: str, methods: list[str], settings: list[str],
+                  reference: str | None) -> list[PairedTable]:
+    """Per setting, every method against ``reference`` on final PSNR and the curve area."""
+    if reference is None:
+        reference = "gopre" if "gopre" in methods else None
+    if reference is None or len(methods) < 2:
+        return []
+    if reference not in methods:
+        raise ValueError(f"reference method {reference!r} did not run; methods: {methods}")
+    out = []
+    for s in settings:
+        part = final[final["setting"] == s]
+        if reference not in set(part["method"]):
+            continue
+        metrics = ["psnr", "psnr_auc"]
+        by_method: dict[str, dict] = {}
+        for metric in metrics:
+            for c in paired_comparisons(part, reference, metric, methods):
+                by_method.setdefault(c.method, {})[metric] = c
+        if by_method:
+            label = f", {s}" if s else ""
+            out.append(PairedTable(f"{title}{label}: paired differences against {reference}",
+                                   reference, metrics, by_method))
+    return out
+
+
+def render_markdown(table) -> str:
+    return paired_to_markdown(table) if isinstance(table, PairedTable) else to_markdown(table)
+
+
+def render_latex(table) -> str:
+    return paired_to_latex(table) if isinstance(table, PairedTable) else to_latex(table)
 
 
 def ause_table(frame: pd.DataFrame, title: str) -> list[Table]:
@@ -133,17 +181,19 @@ def frame_to_markdown(frame: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None) -> dict:
-    """Write report.md, tables (.md, .tex), figures/ and runs.csv into ``out``; returns a summary."""
+def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None,
+                reference: str | None = None) -> dict:
+    """Write report.md, tables (.md, .tex), figures/ and runs.csv into ``out``; returns a summary.
+    ``reference``: the method the paired comparisons are against (default gopre when present)."""
     sweep_dir = Path(source) if Path(source).is_dir() else None
     frame = load_records(source) if frame is None else in_config_order(frame)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     title = str(frame["sweep"].iloc[0])
-    tables = episode_tables(frame, title) + ause_table(frame, title)
-    markdown = "".join(to_markdown(t) + "\n" for t in tables)
+    tables = episode_tables(frame, title, reference) + ause_table(frame, title)
+    markdown = "".join(render_markdown(t) + "\n" for t in tables)
     (out / "table.md").write_text(markdown)
-    (out / "table.tex").write_text("\n".join(to_latex(t) for t in tables))
+    (out / "table.tex").write_text("\n".join(render_latex(t) for t in tables))
     made = make_figures(frame, sweep_dir, out)
     runs = runs_table(frame)
     runs.to_csv(out / "runs.csv", index=False)

@@ -1,4 +1,5 @@
-"""Tables from a sweep's records: Markdown and LaTeX (booktabs), best / second / third marked.
+"""Tables from a sweep's records: Markdown and LaTeX (booktabs), best / second / third marked;
+and paired-comparison tables against a reference method (``PairedTable``).
 
 Aggregation: per (method, dataset, setting, seed) the mean over scenes, then mean +- std over
 seeds (std shown only when there are several seeds). Missing cells (a dataset not run, LPIPS
@@ -14,10 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from pipeline.report.stats import verdict
+
 LOWER_IS_BETTER = {"lpips", "per_candidate_ms", "selection_seconds", "ause", "wall_seconds"}
-METRIC_LABELS = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "per_candidate_ms": "Per-cand. (ms)",
+METRIC_LABELS = {"psnr": "PSNR", "psnr_auc": "PSNR area", "ssim": "SSIM", "lpips": "LPIPS", "per_candidate_ms": "Per-cand. (ms)",
                  "selection_seconds": "Selection (s)", "ause": "AUSE", "wall_seconds": "Wall (s)"}
-DIGITS = {"psnr": 2, "ssim": 3, "lpips": 3, "per_candidate_ms": 1, "selection_seconds": 2, "ause": 3,
+DIGITS = {"psnr": 2, "psnr_auc": 2, "ssim": 3, "lpips": 3, "per_candidate_ms": 1, "selection_seconds": 2, "ause": 3,
           "wall_seconds": 0}
 MISSING = "n/a"
 
@@ -152,4 +155,75 @@ def to_latex(table: Table) -> str:
     lines += [r"\bottomrule", r"\end{tabular}"]
     lines += [rf"{{\footnotesize Note: {_tex_escape(n)}\par}}" for n in table.notes]
     lines.append(r"\end{table}")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass
+class PairedTable:
+    """Paired differences against a reference, one row per method, one column block per metric.
+
+    rows: {method: {metric: PairedComparison}}."""
+
+    title: str
+    reference: str
+    metrics: list[str]
+    rows: dict[str, dict]
+    notes: list[str] = field(default_factory=list)
+
+
+def _signed(x: float, d: int) -> str:
+    return f"{x:+.{d}f}"
+
+
+def _paired_cells(c, metric: str) -> list[str]:
+    if c is None:
+        return [MISSING, MISSING, MISSING]
+    d = DIGITS.get(metric, 2)
+    return [f"{_signed(c.mean_difference, d)} [{_signed(c.low, d)}, {_signed(c.high, d)}]",
+            f"{c.wins}/{c.losses}/{c.ties}", verdict(c)]
+
+
+PAIRED_LABELS = {"psnr": "final PSNR", "psnr_auc": "PSNR-vs-views area"}
+
+
+def paired_to_markdown(table: PairedTable) -> str:
+    header = ["method", "pairs"]
+    for m in table.metrics:
+        label = PAIRED_LABELS.get(m, m)
+        header += [f"Δ {label} (dB) [95% CI]", f"{label} W/L/T", f"{label} verdict"]
+    lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for method, by_metric in table.rows.items():
+        n = max((c.n for c in by_metric.values() if c is not None), default=0)
+        out = [method, str(n)]
+        for m in table.metrics:
+            out += _paired_cells(by_metric.get(m), m)
+        lines.append("| " + " | ".join(out) + " |")
+    lines += ["", f"Δ = method − {table.reference} over pairs (same dataset, scene, seed and setting; "
+              "both finished); 95% percentile bootstrap interval of the mean over pairs; W/L/T = "
+              f"pairs where the method is better / worse / equal. The verdict is 'better' only when "
+              "the interval excludes zero."]
+    lines += [f"Note: {n}" for n in table.notes]
+    return "\n".join(lines) + "\n"
+
+
+def paired_to_latex(table: PairedTable) -> str:
+    cols = "lc" + "cc" * len(table.metrics)
+    lines = [r"% requires \usepackage{booktabs}", r"\begin{table}[t]", r"\centering",
+             rf"\caption{{{_tex_escape(table.title)}}}", rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
+             " & & " + " & ".join(rf"\multicolumn{{2}}{{c}}{{{_tex_escape(PAIRED_LABELS.get(m, m))}}}"
+                                  for m in table.metrics) + r" \\",
+             "".join(rf"\cmidrule(lr){{{3 + 2 * i}-{4 + 2 * i}}}" for i in range(len(table.metrics))),
+             "Method & Pairs & " + " & ".join(r"$\Delta$ [95\% CI] & W/L/T" for _ in table.metrics) + r" \\",
+             r"\midrule"]
+    for method, by_metric in table.rows.items():
+        n = max((c.n for c in by_metric.values() if c is not None), default=0)
+        out = [_tex_escape(method), str(n)]
+        for m in table.metrics:
+            cells = _paired_cells(by_metric.get(m), m)
+            out += [cells[0].replace("[", "$[").replace("]", "]$") if cells[0] != MISSING else MISSING,
+                    cells[1]]
+        lines.append(" & ".join(out) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}",
+              rf"{{\footnotesize $\Delta$ = method $-$ {_tex_escape(table.reference)} over paired "
+              r"(scene, seed) runs; percentile bootstrap interval.\par}", r"\end{table}"]
     return "\n".join(lines) + "\n"

@@ -105,6 +105,13 @@ class Gaussians:
     def to(self, device=None, dtype=None) -> "Gaussians":
         return Gaussians(**{k: v.to(device=device, dtype=dtype) for k, v in self.params().items()})
 
+    def at_sh_degree(self, degree: int) -> "Gaussians":
+        """The same Gaussians with the SH coefficients above ``degree`` dropped: the model that
+        renders at that degree, whose Fisher has no columns for coefficients it does not use."""
+        if not 0 <= degree <= self.sh_degree:
+            raise ValueError(f"sh degree {degree} outside 0..{self.sh_degree} (the stored degree)")
+        return self.replace(shN=self.shN[:, :num_sh_bases(degree) - 1])
+
     def index(self, idx: Tensor) -> "Gaussians":
         return Gaussians(**{k: v[idx] for k, v in self.params().items()})
 

@@ -375,7 +375,7 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
 
 @njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked, background,
-                 tiles_x, tile_size, rows_out):
+                 tiles_x, tile_size, channel_summed, rows_out):
     """One tile back to front, Gaussian by Gaussian; each Gaussian's 40 sums are accumulated over
     the tile's pixels locally and written to its row once."""
     height, width = walked.shape
@@ -413,11 +413,14 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
             trans[p] = tr
             w = alpha * tr
             odds = alpha / (1.0 - alpha)
-            total = 0.0
+            total, summed = 0.0, 0.0
             for c in range(3):
                 s[c] = (w * colors[g, c] - odds * suffix[p, c]) if live else 0.0
                 suffix[p, c] += w * colors[g, c]
                 total += s[c] * s[c]
+                summed += s[c]
+            if channel_summed:
+                total = summed * summed
             h[0] = row[2] * dx + row[3] * dy
             h[1] = row[3] * dx + row[4] * dy
             h[2] = -0.5 * dx * dx
@@ -440,13 +443,15 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
 
 @njit(parallel=PRANGE_ONLY, cache=True)
 def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, walked,
-                background, tiles_x, tile_size, workers):
+                background, tiles_x, tile_size, channel_summed, workers):
     """Per walked intersection, the pixel sums of the feature-space Fisher pieces, [R, 40] float64.
 
     Per (pixel, Gaussian): s_c = dI_c / d(exponent) (0 where alpha is clamped), w = alpha T,
     h = d(exponent) / d(u, v, a, b, c, opacity) at the pixel's offset d from the mean:
         h = (a dx + b dy, b dx + c dy, -dx^2 / 2, -dx dy, -dy^2 / 2, 1 / opacity).
-    Row = (sum S h_a h_b for a <= b [21], sum s_c w h_a [6 x 3], sum w^2), S = sum_c s_c^2.
+    Row = (sum S h_a h_b for a <= b [21], sum s_c w h_a [6 x 3], sum w^2), S = sum_c s_c^2, or
+    S = (sum_c s_c)^2 when ``channel_summed`` (FisherRF's released Hessian squares the
+    channel-summed derivative).
     The exponent's derivative s_c = w f_c - alpha / (1 - alpha) * (colour composited behind,
     background times final transmittance included), accumulated back to front.
     """
@@ -455,12 +460,12 @@ def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, 
     if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
         for t in range(num_tiles):
             _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked,
-                         background, tiles_x, tile_size, out)
+                         background, tiles_x, tile_size, channel_summed, out)
     else:
         for worker in prange(workers):
             for t in range(worker, num_tiles, workers):
                 _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked,
-                             background, tiles_x, tile_size, out)
+                             background, tiles_x, tile_size, channel_summed, out)
     return out
 
 

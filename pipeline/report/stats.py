@@ -1,0 +1,114 @@
+"""Statistics for comparing methods across seeds: the PSNR-vs-views area, and paired differences
+against a reference method with bootstrap intervals and wins/losses.
+
+A pair is one (dataset, scene, seed, setting) on which both the method and the reference finished:
+the same scene, the same initial views and the same seed, so the difference removes what the
+seed shares between methods. The interval is a percentile bootstrap over pairs (seeded, so a
+report is reproducible).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+PAIR_KEYS = ("dataset", "scene", "seed", "setting")
+BOOTSTRAP_SAMPLES = 10_000
+TIE_DB = 1e-9  # differences this small count as ties
+
+
+def curve_area(num_views: np.ndarray, psnr: np.ndarray) -> float:
+    """Area under the PSNR-vs-views curve divided by its span of views: the curve's mean PSNR in
+    dB (trapezoid rule over the recorded view counts); the single value when there is one."""
+    order = np.argsort(num_views, kind="stable")
+    x, y = np.asarray(num_views, dtype=float)[order], np.asarray(psnr, dtype=float)[order]
+    if len(x) == 1 or x[-1] == x[0]:
+        return float(y.mean())
+    return float(np.sum((x[1:] - x[:-1]) * (y[1:] + y[:-1]) / 2) / (x[-1] - x[0]))
+
+
+def with_curve_area(final: pd.DataFrame, rounds: pd.DataFrame) -> pd.DataFrame:
+    """``final`` with a ``psnr_auc`` column: each job's (config_hash) curve area from its rounds."""
+    if rounds.empty:
+        return final.assign(psnr_auc=np.nan)
+    areas = {key: curve_area(part["num_views"].to_numpy(), part["psnr"].to_numpy())
+             for key, part in rounds.dropna(subset=["psnr"]).groupby("config_hash")}
+    return final.assign(psnr_auc=final["config_hash"].map(areas).astype(float))
+
+
+def bootstrap_interval(values: np.ndarray, level: float = 0.95, samples: int = BOOTSTRAP_SAMPLES,
+                       seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean of ``values`` [n] (n >= 1; a single value gives a
+    zero-width interval, which the tables flag by n)."""
+    values = np.asarray(values, dtype=float)
+    if values.size == 0:
+        raise ValueError("bootstrap_interval: no values")
+    rng = np.random.default_rng(seed)
+    means = values[rng.integers(0, values.size, size=(samples, values.size))].mean(axis=1)
+    tail = (1 - level) / 2
+    return float(np.quantile(means, tail)), float(np.quantile(means, 1 - tail))
+
+
+@dataclass
+class PairedComparison:
+    method: str
+    reference: str
+    metric: str
+    n: int                      # pairs
+    mean_difference: float      # method - reference (for PSNR: positive = method better)
+    low: float                  # 95% bootstrap interval of the mean difference
+    high: float
+    wins: int                   # pairs where the method is better than the reference
+    losses: int
+    ties: int
+
+
+def paired_differences(final: pd.DataFrame, reference: str, metric: str,
+                       higher_is_better: bool = True) -> dict[str, np.ndarray]:
+    """Per method other than ``reference``: method - reference over the pairs both finished."""
+    keys = [k for k in PAIR_KEYS if k in final]
+    data = final.dropna(subset=[metric]).copy()
+    data["setting"] = data["setting"].fillna("") if "setting" in data else ""
+    table = data.pivot_table(index=keys, columns="method", values=metric, aggfunc="mean")
+    if reference not in table:
+        raise ValueError(f"reference method {reference!r} has no finished runs with {metric!r}; "
+                         f"methods: {sorted(table.columns)}")
+    out = {}
+    for method in table.columns:
+        if method == reference:
+            continue
+        both = table[[method, reference]].dropna()
+        diff = (both[method] - both[reference]).to_numpy(dtype=float)
+        out[method] = diff if higher_is_better else -diff
+    return out
+
+
+def paired_comparisons(final: pd.DataFrame, reference: str, metric: str = "psnr",
+                       method_order: list[str] | None = None,
+                       higher_is_better: bool = True) -> list[PairedComparison]:
+    """One ``PairedComparison`` per method with at least one pair, in ``method_order``."""
+    diffs = paired_differences(final, reference, metric, higher_is_better)
+    order = [m for m in (method_order or list(diffs)) if m in diffs]
+    out = []
+    for method in order:
+        d = diffs[method]
+        if d.size == 0:
+            continue
+        low, high = bootstrap_interval(d)
+        out.append(PairedComparison(method, reference, metric, int(d.size), float(d.mean()), low, high,
+                                    int((d > TIE_DB).sum()), int((d < -TIE_DB).sum()),
+                                    int((np.abs(d) <= TIE_DB).sum())))
+    return out
+
+
+def verdict(c: PairedComparison) -> str:
+    """Plain words: whether the interval excludes zero, and on which side."""
+    if c.n < 2:
+        return "one pair: no interval"
+    if c.low > 0:
+        return f"{c.method} better"
+    if c.high < 0:
+        return f"{c.reference} better"
+    return "no clear difference"
