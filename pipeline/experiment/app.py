@@ -2,6 +2,7 @@
 
     pipeline-run experiment=demo
     pipeline-run experiment=table1_global data_root=/data splat=cpu executor.address=auto
+    pipeline-run experiment=science plan=true      # the job table and an estimate; starts nothing
 
 The exit status is the number of failed jobs (capped at 100); 0 when every job finished.
 """
@@ -15,7 +16,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.experiment.build import ConfigError
+from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.plan import plan_jobs, plan_text, slots
 from pipeline.experiment.sweep import run_sweep
 
 CONF_DIR = Path(os.environ.get("GOPRE_CONF", Path(__file__).resolve().parents[2] / "conf"))
@@ -40,6 +42,15 @@ register_resolvers()
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> None:
+    if cfg.get("plan"):
+        try:
+            jobs = expand_jobs(cfg)
+        except ConfigError as err:
+            print(f"pipeline-run: config error: {err}", file=sys.stderr)
+            sys.exit(2)
+        executor = OmegaConf.to_container(cfg.executor, resolve=True)
+        print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs)))
+        return
     try:
         summary = run_sweep(cfg)
     except ConfigError as err:
