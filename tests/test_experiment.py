@@ -174,31 +174,62 @@ def broken_scene(good: Path, folder: Path) -> Path:
     return folder
 
 
+def test_a_corrupt_scene_is_refused_before_anything_starts(base):
+    """Every scene is read and every protocol built before Ray or MLflow start; all problems are
+    listed at once, each naming its dataset key."""
+    out = base / "refused"
+    cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "tracking=mlflow"])
+    good = Path(expand_jobs(cfg)[0]["scene_path"]).resolve()  # <out>/../scenes/...: out is not made yet
+    if not (good / "transforms_test.json").exists():
+        run_sweep(composed(["experiment=debug", *TINY, f"output_dir={base / 'gen'}", "method=[random]"]))
+    broken_scene(good, out / "data" / "broken")
+    OmegaConf.set_struct(cfg, False)
+    cfg.dataset.broken = {"format": "blender", "root": str(out / "data"), "scenes": ["broken", "nosuch"],
+                          "generate": None}
+    with pytest.raises(ConfigError) as err:
+        run_sweep(cfg)
+    text = str(err.value)
+    assert text.startswith("2 problem(s), nothing was started")
+    assert "dataset.broken scene 'broken'" in text and "r_" in text and ".png" in text
+    assert "dataset.broken scene 'nosuch'" in text and "no such folder" in text
+    assert not (out / "mlruns").exists() and not (out / "jobs").exists() and not (out / "mlflow.db").exists()
+
+
 @pytest.mark.slow
-def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base):
+def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base, monkeypatch):
+    """A job that raises is retried, then recorded FAILED while the others finish; a relaunch
+    reruns exactly the FAILED jobs (records and MLflow)."""
+    import shutil
+
+    import pipeline.experiment.job as job_module
     out = base / "failing"
     cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "job.retries=1",
                     "tracking=mlflow"])
     run_sweep(cfg)  # generates the good scene and runs it
     good = Path(expand_jobs(cfg)[0]["scene_path"])
-    broken_scene(good, out / "data" / "broken")
+    shutil.copytree(good, out / "data" / "flaky")
+    real = job_module.run_episode
+
+    def failing_on_flaky(scene, *args, **kwargs):
+        if Path(scene.root).name == "flaky":
+            raise RuntimeError("injected failure on r_flaky")
+        return real(scene, *args, **kwargs)
+    monkeypatch.setattr(job_module, "run_episode", failing_on_flaky)
     OmegaConf.set_struct(cfg, False)
-    cfg.dataset.broken = {"format": "blender", "root": str(out / "data"), "scenes": ["broken"], "generate": None}
+    cfg.dataset.flaky = {"format": "blender", "root": str(out / "data"), "scenes": ["flaky"], "generate": None}
     cfg.method = {"random": cfg.method.random, "coverage": {"strategy": "coverage", "options": {}}}
     summary = run_sweep(cfg)
     assert summary.failed == 2 and summary.finished == 1 and summary.skipped == 1
     frame = RecordsFile(out).frame
     failed = frame[frame["status"] == "FAILED"]
     assert len(failed) == 2 and (failed["attempts"] == 2).all()
-    assert failed["error"].str.contains("r_").all()  # the traceback names the broken file
+    assert failed["error"].str.contains("injected failure on r_flaky").all()
     hash_ = failed["config_hash"].iloc[0]
     assert "traceback" in (out / "jobs" / hash_ / "artifacts" / "traceback.txt").read_text().lower()
     log = (out / "jobs" / hash_ / "log.txt").read_text()
     assert "attempt 1/2 failed" in log and "attempt 2/2 failed" in log
     # repaired and relaunched: exactly the two FAILED jobs run again, and now finish
-    import shutil
-    shutil.rmtree(out / "data" / "broken")
-    shutil.copytree(good, out / "data" / "broken")
+    monkeypatch.setattr(job_module, "run_episode", real)
     again = run_sweep(cfg)
     assert (again.skipped, again.finished, again.failed) == (2, 2, 0)
     frame = RecordsFile(out).frame.query("kind == 'final'")

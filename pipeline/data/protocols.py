@@ -41,6 +41,15 @@ class ProtocolConfig:
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"protocol kind must be one of {KINDS}, got {self.kind!r}")
+        for name, low in (("initial_views", 1), ("budget", 2), ("llff_hold", 2)):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < low):
+                raise ValueError(f"protocol.{name} must be an integer >= {low}, got {value!r}")
+        if self.probes is not None:
+            k = self.probes
+            if isinstance(k, bool) or not isinstance(k, (int, float)) or not (k >= 1 or 0 < k < 1) \
+                    or (isinstance(k, float) and k > 1 and not k.is_integer()):
+                raise ValueError(f"protocol.probes must be a count >= 1 or a fraction in (0, 1), got {k!r}")
 
 
 @dataclass

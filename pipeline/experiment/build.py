@@ -86,6 +86,16 @@ def _axes(cfg: DictConfig) -> list[dict]:
     return [dict(zip(keys, combo)) for combo in itertools.product(*(sweep[k] for k in keys))]
 
 
+def seeds_of(cfg: DictConfig) -> list[int]:
+    """``seeds``: a list of integers (or one integer); anything else is a config error."""
+    seeds = _container(cfg, "seeds") if not isinstance(cfg.get("seeds"), (int, str)) else cfg.get("seeds")
+    seeds = [seeds] if isinstance(seeds, int) and not isinstance(seeds, bool) else seeds
+    if not isinstance(seeds, list) or not seeds or any(
+            isinstance(s, bool) or not isinstance(s, int) for s in seeds):
+        raise ConfigError(f"seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got {seeds!r}")
+    return seeds
+
+
 def expand_jobs(cfg: DictConfig) -> list[dict]:
     """Every job of the sweep, validated, in a deterministic order."""
     datasets, methods = _container(cfg, "dataset"), _container(cfg, "method")
@@ -98,8 +108,13 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
         raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
     jobs = []
     output_dir = Path(str(cfg.output_dir))
+    for dname, dset in datasets.items():
+        missing = sorted({"format", "root", "scenes"} - set(dset or {}))
+        if missing:
+            raise ConfigError(f"dataset.{dname}: missing keys {missing} (a preset may configure a dataset "
+                              f"that the dataset list does not select; selected: {sorted(datasets)})")
     for (dname, dset), (mname, method), seed, axes in itertools.product(
-            datasets.items(), methods.items(), list(cfg.seeds), _axes(cfg)):
+            datasets.items(), methods.items(), seeds_of(cfg), _axes(cfg)):
         check_keys(f"method.{mname}", method, METHOD_KEYS)
         for scene in dset["scenes"]:
             job = {"sweep": str(cfg.name), "kind": job_cfg["kind"], "dataset": dname,
@@ -159,7 +174,7 @@ def _protocol(data: dict) -> ProtocolConfig:
     try:
         return ProtocolConfig(**data)
     except ValueError as err:
-        raise ConfigError(f"protocol: {err}") from None
+        raise ConfigError(str(err) if str(err).startswith("protocol") else f"protocol: {err}") from None
 
 
 def uncertainty_config(job: dict) -> UncertaintyConfig:

@@ -15,9 +15,10 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.data.load import load_scene
+from pipeline.data.protocols import build_protocol
 from pipeline.data.scene import Scene
 from pipeline.data.synthetic import generate
-from pipeline.experiment.build import episode_config, expand_jobs
+from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
 from pipeline.experiment.executor import make_executor, scene_key
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
@@ -96,9 +97,10 @@ def save_artifacts(output_dir: Path, job: dict, outcome: dict) -> None:
         (folder / "result.json").write_text(json.dumps(outcome["result"], default=str))
 
 
-def prepare_scenes(jobs: list[dict]) -> dict[str, Scene]:
-    """Generate the embedded scene if needed, then read each (scene, resolution) once."""
-    scenes, seen = {}, set()
+def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
+    """Generate the embedded scene if needed, then read each (scene, resolution) once.
+    Returns the scenes and one error per scene that cannot be read (naming the dataset key)."""
+    scenes, seen, errors = {}, set(), []
     for job in jobs:
         key = scene_key(job)
         if key in seen:
@@ -111,9 +113,44 @@ def prepare_scenes(jobs: list[dict]) -> dict[str, Scene]:
             generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
         try:
-            scenes[key] = load_scene(path, width=episode_config(job).fit.image_width)
-        except Exception as err:  # its jobs read the scene themselves, fail and are recorded FAILED
-            print(f"warning: cannot read {path}: {err}", flush=True)
+            scene = load_scene(path, width=episode_config(job).fit.image_width)
+        except Exception as err:
+            errors.append(f"dataset.{job['dataset']} scene {job['scene']!r}: {err}")
+            continue
+        if scene.format != job["format"]:
+            errors.append(f"dataset.{job['dataset']} scene {job['scene']!r}: {path} is a {scene.format} "
+                          f"scene but dataset.{job['dataset']}.format is {job['format']!r}")
+            continue
+        scenes[key] = scene
+    return scenes, errors
+
+
+def protocol_errors(jobs: list[dict], scenes: dict[str, Scene]) -> list[str]:
+    """One error per (scene, protocol) that does not fit the scene (budget, initial views, an
+    empty sector ...), found by building the protocol's views before any job starts."""
+    errors, checked = [], set()
+    for job in jobs:
+        if job["kind"] != "episode" or scene_key(job) not in scenes:
+            continue
+        key = (scene_key(job), json.dumps(job["protocol"], sort_keys=True))
+        if key in checked:
+            continue
+        checked.add(key)
+        try:
+            build_protocol(scenes[scene_key(job)], episode_config(job).protocol)
+        except ValueError as err:
+            where = f" ({job['setting']})" if job.get("setting") else ""
+            errors.append(f"protocol on dataset.{job['dataset']} scene {job['scene']!r}{where}: {err}")
+    return errors
+
+
+def validate_sweep(jobs: list[dict]) -> dict[str, Scene]:
+    """Read every scene and build every protocol before Ray or MLflow start; all problems are
+    reported at once as one ConfigError (one line each)."""
+    scenes, errors = prepare_scenes(jobs)
+    errors += protocol_errors(jobs, scenes)
+    if errors:
+        raise ConfigError(f"{len(errors)} problem(s), nothing was started:\n  " + "\n  ".join(errors))
     return scenes
 
 
@@ -141,8 +178,10 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     (output_dir / "sweep_config.json").write_text(json.dumps(resolved, indent=1, default=str))
     records = RecordsFile(output_dir)
+    recorded = records.finished_hashes()
+    scenes = validate_sweep([j for j in jobs if j["config_hash"] not in recorded])
     tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
-    done = records.finished_hashes() | tracker.finished_hashes()
+    done = recorded | tracker.finished_hashes()
     todo = execution_order([j for j in jobs if j["config_hash"] not in done])
     print(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
           f"{len(todo)} to run; output in {output_dir}", flush=True)
@@ -151,7 +190,6 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
     executor = make_executor(resolved["executor"])
     failed = 0
     if todo:
-        scenes = prepare_scenes(todo)
         tracker.start(resolved, len(todo))
         progress = Progress(str(cfg.name), len(todo), 1)
 

@@ -1,0 +1,29 @@
+"""Bad sweeps are refused by the real ``pipeline-run`` before any job starts: exit status 2 and a
+message naming the key or the folder, no traceback, no job folder."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BIN = Path(sys.executable).parent
+pytestmark = pytest.mark.slow  # one real command per case (~10 s each idle)
+
+
+@pytest.mark.parametrize("overrides,expected", [
+    (["dataset.generated.root=/nonexistent", "dataset.generated.generate=null"],
+     "dataset.generated scene 'generated': /nonexistent/generated: no such folder"),
+    (["dataset=[shared]", "data_root=/data"], "dataset.generated: missing keys ['format', 'root', 'scenes']"),
+    (["protocol.budget=0"], "protocol.budget must be an integer >= 2, got 0"),
+    (["seeds=zero"], "seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got 'zero'"),
+    (["protocol.initial_views=20"],
+     "protocol on dataset.generated scene 'generated': initial_views=20 exceeds the pool of 14 views"),
+])
+def test_bad_sweeps_exit_2_naming_the_problem_before_any_job(tmp_path, overrides, expected):
+    proc = subprocess.run([str(BIN / "pipeline-run"), "experiment=debug", f"output_dir={tmp_path / 'o'}",
+                           *overrides], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "config error" in proc.stderr and expected in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "o" / "jobs").exists()
