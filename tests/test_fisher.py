@@ -252,3 +252,36 @@ def test_released_fisherrf_hessian_matches_its_description_by_autograd(backend):
 def test_fisher_spec_rejects_an_unknown_hessian():
     with pytest.raises(ValueError, match="hessian must be one of .*'exact', 'fisherrf_released'.* got 'exakt'"):
         FisherSpec(hessian="exakt")
+
+
+def test_scores_reduce_the_last_axis_of_any_batch_shape_in_float64():
+    """Scores take sx [..., D]: a [2, 3, D] batch gives [2, 3], each entry the 1-D score, in float64
+    even from float32 inputs (a wrong axis or a float32 accumulator shows here)."""
+    from pipeline.fisher.posterior import trace_score
+    gen = torch.Generator().manual_seed(5)
+    sx = torch.rand(2, 3, 7, generator=gen, dtype=F64) + 0.1
+    goal, probes = torch.rand(7, generator=gen), torch.rand(4, 7, generator=gen)
+    for name, fn, arg in (("gopre", gopre_score, goal), ("trace", trace_score, goal),
+                          ("mc", monte_carlo_score, probes)):
+        out = fn(sx.float(), arg, 0.7)
+        assert out.shape == (2, 3) and out.dtype == F64, name
+        for i in range(2):
+            for j in range(3):
+                assert out[i, j].item() == pytest.approx(fn(sx[i, j].float(), arg, 0.7).item(), rel=1e-12), name
+    assert monte_carlo_score(sx, probes, 0.7)[1, 2].item() == pytest.approx(
+        sum(torch.log1p(sx[1, 2] * p.double() / 0.49).sum().item() for p in probes) / 4, rel=1e-12)
+
+
+def test_paper_defaults_tau_is_one():
+    """The paper sets tau = 1: every function's default equals an explicit tau = 1."""
+    s = torch.tensor([0.5, 2.0, 3.0], dtype=F64)
+    f = torch.tensor([1.0, 0.25, 4.0], dtype=F64)
+    dense = torch.outer(f, f) + torch.diag(f)
+    assert torch.equal(updated_variance(s, f), 1 / (1 / s + f))
+    assert log_det_information(s, f).item() == pytest.approx(torch.log1p(s * f).sum().item(), rel=1e-14)
+    expected = torch.linalg.slogdet(torch.eye(3, dtype=F64) + s.sqrt()[:, None] * dense * s.sqrt()[None])[1]
+    assert log_det_information(s, dense).item() == pytest.approx(expected.item(), rel=1e-14)
+    from pipeline.fisher.posterior import predictive_entropy
+    assert predictive_entropy(s, f, 12).item() == pytest.approx(
+        0.5 * torch.log1p(s * f).sum().item() + 6 * math.log(2 * math.pi * math.e), rel=1e-14)
+

@@ -260,3 +260,138 @@ def test_both_prune_rules():
     kept = densify_and_prune(params, opt, stats, cfg, extent=1.0, prune_large=True)
     assert kept["means"].shape[0] == 1  # row 2 (radius 50 px) and row 3 (scale 0.5 > 0.1) go too
     assert opt.state[kept["means"]]["exp_avg"][0, 0] == 1.0  # the survivor is row 0
+
+
+F64 = torch.float64
+
+
+def _f64_params(means, log_scales, logits, moments=True):
+    """Float64 parameters with identity rotations; one named Adam group each, with (or without:
+    before the first step) per-row moments exp_avg = row + 1."""
+    n = means.shape[0]
+    params = {"means": means, "log_scales": log_scales, "quats": torch.tensor([[1.0, 0, 0, 0]] * n, dtype=F64),
+              "logit_opacities": logits, "sh0": torch.zeros(n, 1, 3, dtype=F64),
+              "shN": torch.zeros(n, 3, 3, dtype=F64)}
+    params = {k: v.to(F64).clone().requires_grad_(True) for k, v in params.items()}
+    opt = torch.optim.Adam([{"params": [p], "lr": 1e-3, "name": k} for k, p in params.items()])
+    if moments:
+        for p in params.values():
+            rows = torch.arange(1, n + 1, dtype=F64).reshape(-1, *[1] * (p.ndim - 1)).expand_as(p)
+            opt.state[p] = {"step": torch.tensor(1.0), "exp_avg": rows.clone(), "exp_avg_sq": rows.clone()}
+    return params, opt
+
+
+def test_stats_accumulate_ndc_gradient_norms_of_seen_gaussians_only():
+    """Per update: |grad * (W/2, H/2)| for Gaussians with radius > 0, a count per update; the mean
+    divides by the count (0 for never-seen Gaussians)."""
+    stats = DensifyStats.zeros(3, torch.zeros(1, dtype=F64))
+    grad = torch.tensor([[1.0, 2.0], [3.0, 4.0], [0.5, 0.5]], dtype=F64)
+    radii = torch.tensor([0, 1, 3])
+    stats.update(grad, radii, width=40, height=20)  # NDC scale (20, 10)
+    expected = torch.tensor([0.0, math.hypot(60, 40), math.hypot(10, 5)], dtype=F64)
+    torch.testing.assert_close(stats.grad_sum, expected, rtol=1e-15, atol=0)
+    assert stats.count.tolist() == [0, 1, 1] and stats.max_radii.tolist() == [0, 1, 3]
+    torch.testing.assert_close(stats.mean_grads(), expected, rtol=1e-15, atol=0)  # count 1
+    stats.update(grad, radii, width=40, height=20)
+    assert stats.count.tolist() == [0, 2, 2]
+    torch.testing.assert_close(stats.mean_grads(), expected, rtol=1e-15, atol=0)  # sum 2x over count 2
+
+
+def test_the_cap_takes_the_highest_gradients_first_and_fills_the_room_exactly():
+    from pipeline.fit.densify import _select_under_cap
+    grads = torch.tensor([0.1, 0.5, 0.3, 0.9])
+    every = torch.ones(4, dtype=torch.bool)
+    ones = torch.ones(4, dtype=torch.long)
+    assert _select_under_cap(grads, every, ones, 2).tolist() == [False, True, False, True]
+    assert _select_under_cap(grads, every, ones, 0).tolist() == [False] * 4
+    assert _select_under_cap(grads, every, ones, -3).tolist() == [False] * 4
+    # in gradient order 3, 1, 2, 0 the cumulative cost is 2, 3, 4, 5: only row 3 fits in 2
+    assert _select_under_cap(grads, every, torch.tensor([1, 1, 1, 2]), 2).tolist() == [False, False, False, True]
+    assert _select_under_cap(grads, every, ones, None).tolist() == [True] * 4
+
+
+def test_clone_split_and_cap_thresholds_at_their_boundaries_with_a_scene_extent():
+    """extent 2, percent_dense 0.25: a max scale of exactly 0.5 clones, 0.3 clones (it would split
+    if the threshold were divided by the extent), 0.6 splits; a gradient exactly at the threshold
+    densifies; a split into 3 costs 2 rows, a clone 1, and a room of exactly that fits."""
+    scale = torch.tensor([0.5, 0.3, 0.6, 0.01], dtype=F64)
+    assert torch.exp(torch.log(scale[0])).item() == 0.5  # the boundary is exact
+    log_scales = torch.log(torch.stack([scale, torch.full_like(scale, 0.01), torch.full_like(scale, 0.01)], 1))
+    means = torch.arange(12, dtype=F64).reshape(4, 3)
+    cfg = DensifyConfig(min_opacity=0.0, grad_threshold=0.5, percent_dense=0.25, split_count=3, max_gaussians=None)
+
+    def run(grad_sum, max_gaussians=None):
+        params, opt = _f64_params(means, log_scales, torch.zeros(4))
+        stats = DensifyStats(torch.tensor(grad_sum, dtype=F64), torch.ones(4, dtype=F64), torch.zeros(4, dtype=F64))
+        c = DensifyConfig(**{**cfg.__dict__, "max_gaussians": max_gaussians})
+        return densify_and_prune(params, opt, stats, c, extent=2.0, prune_large=False,
+                                 generator=torch.Generator().manual_seed(0))["means"].detach()
+    out = run([0.5, 0.5, 0.5, 0.4])  # rows 0-2 at the threshold, row 3 under it
+    # kept: 0, 1, 3 (row 2 is split away); clones of 0 and 1; three children of 2
+    assert out.shape[0] == 3 + 2 + 3
+    assert torch.equal(out[:5], means[[0, 1, 3, 0, 1]])
+    assert run([0.0, 0.0, 0.5, 0.0], max_gaussians=4 + 2).shape[0] == 4 - 1 + 3  # split fits exactly
+    assert run([0.0, 0.0, 0.5, 0.0], max_gaussians=4 + 1).shape[0] == 4  # it does not fit
+    assert run([0.0, 0.6, 0.0, 0.0], max_gaussians=4 + 1).shape[0] == 5  # a clone fits in 1
+
+
+def test_split_children_are_the_parent_mean_plus_rotated_scaled_draws_from_the_generator():
+    """Children = mean + R (std * z) with z the generator's standard normal draws in the
+    parameters' dtype; R from scipy (an independent rotation)."""
+    from scipy.spatial.transform import Rotation
+    q = torch.tensor([[0.8, 0.3, -0.4, 0.33]], dtype=F64)
+    scales = torch.tensor([[0.4, 0.1, 0.05]], dtype=F64)
+    params, opt = _f64_params(torch.tensor([[1.0, -2.0, 0.5]]), torch.log(scales), torch.zeros(1))
+    with torch.no_grad():
+        params["quats"].copy_(q)
+    cfg = DensifyConfig(min_opacity=0.0, grad_threshold=0.5, split_count=3)
+    stats = DensifyStats(torch.ones(1, dtype=F64), torch.ones(1, dtype=F64), torch.zeros(1, dtype=F64))
+    torch.manual_seed(123)  # the global generator must not matter
+    out = densify_and_prune(params, opt, stats, cfg, extent=1.0, prune_large=False,
+                            generator=torch.Generator().manual_seed(7))["means"].detach()
+    z = torch.randn((3, 3), generator=torch.Generator().manual_seed(7), dtype=F64) * scales
+    r = torch.from_numpy(Rotation.from_quat((q[0, [1, 2, 3, 0]] / q.norm()).numpy()).as_matrix())
+    torch.testing.assert_close(out, torch.tensor([1.0, -2.0, 0.5], dtype=F64) + z @ r.T, rtol=1e-12, atol=1e-14)
+
+
+def test_prune_limits_are_strict_and_scale_with_the_extent():
+    """Opacity exactly at min_opacity, a screen radius exactly at the limit and a world scale
+    exactly at max_world_scale * extent all stay; above them they go."""
+    logits = torch.tensor([-3.0, -3.0 - 1e-9, 0.0, 0.0, 0.0, 0.0], dtype=F64)
+    limit = 0.1 * 2.0
+    world = torch.tensor([0.01, 0.01, 0.01, 0.01, limit, 0.15], dtype=F64)
+    assert torch.exp(torch.log(world[4])).item() == limit  # the boundary is exact
+    log_scales = torch.log(world)[:, None].expand(6, 3).clone()
+    radii = torch.tensor([1.0, 1.0, 20.0, 20.5, 1.0, 1.0], dtype=F64)
+    params, opt = _f64_params(torch.zeros(6, 3), log_scales, logits)
+    cfg = DensifyConfig(min_opacity=float(torch.sigmoid(torch.tensor(-3.0, dtype=F64))), max_screen_radius=20.0,
+                        max_world_scale=0.1, grad_threshold=1e9)
+    stats = DensifyStats(torch.zeros(6, dtype=F64), torch.ones(6, dtype=F64), radii)
+    kept = densify_and_prune(params, opt, stats, cfg, extent=2.0, prune_large=True)
+    rows = opt.state[kept["means"]]["exp_avg"][:, 0].tolist()  # moments name their original rows
+    assert rows == [1.0, 3.0, 5.0, 6.0]  # row 1 (opacity below), row 3 (radius 20.5 > 20) go
+
+
+def test_pruning_never_removes_the_whole_scene():
+    logits = torch.tensor([-9.0, -7.0, -8.0], dtype=F64)  # all below min_opacity
+    params, opt = _f64_params(torch.zeros(3, 3), torch.full((3, 3), -4.0, dtype=F64), logits)
+    stats = DensifyStats(torch.zeros(3, dtype=F64), torch.ones(3, dtype=F64), torch.zeros(3, dtype=F64))
+    kept = densify_and_prune(params, opt, stats, DensifyConfig(), extent=1.0, prune_large=False)
+    assert kept["logit_opacities"].tolist() == [-7.0]  # the most opaque one stays
+    assert opt.state[kept["means"]]["exp_avg"][:, 0].tolist() == [2.0]
+
+
+def test_opacity_reset_zeroes_only_the_opacity_moments_and_works_before_any_step():
+    params, opt = _f64_params(torch.zeros(2, 3), torch.full((2, 3), -4.0, dtype=F64), torch.tensor([2.0, -6.0]))
+    out = reset_opacity(params, opt, 0.01)
+    torch.testing.assert_close(out["logit_opacities"].detach(),
+                               torch.tensor([math.log(0.01 / 0.99), -6.0], dtype=F64), rtol=1e-12, atol=0)
+    state = opt.state[out["logit_opacities"]]
+    assert state["step"].item() == 1.0  # the state is kept, its moments zeroed
+    assert state["exp_avg"].abs().sum() == 0 and state["exp_avg_sq"].abs().sum() == 0
+    assert set(state) == {"step", "exp_avg", "exp_avg_sq"}
+    assert opt.state[out["means"]]["exp_avg"][:, 0].tolist() == [1.0, 2.0]  # others untouched
+    fresh, opt = _f64_params(torch.zeros(2, 3), torch.full((2, 3), -4.0, dtype=F64), torch.zeros(2), moments=False)
+    reset_opacity(fresh, opt, 0.01)  # no Adam state yet: nothing to zero, no error
+    stats = DensifyStats(torch.ones(2, dtype=F64), torch.ones(2, dtype=F64), torch.zeros(2, dtype=F64))
+    densify_and_prune(fresh, opt, stats, DensifyConfig(min_opacity=0.0), 1.0, False)  # nor here

@@ -169,7 +169,7 @@ def test_diagonal_log_det_information_equals_the_dense_determinant():
 
 def test_goal_hessian_needs_a_probe():
     from pipeline.fisher.posterior import goal_hessian
-    with pytest.raises(ValueError, match=r"no probe poses \(K = 0\)"):
+    with pytest.raises(ValueError, match=r"^goal_hessian: no probe poses \(K = 0\)$"):
         goal_hessian(torch.zeros(0, 5, dtype=F64))
     f = torch.rand(1, 5, dtype=F64)
     assert torch.equal(goal_hessian(f), f[0])
