@@ -335,3 +335,12 @@ def test_a_degraded_final_model_is_flagged_in_records_mlflow_and_output(base, ca
     assert run.data.tags["degraded"] == "true"
     from_mlflow = records_from_mlflow(summary.tracking_uri, "debug").query("kind == 'final'")
     assert bool(from_mlflow["degraded"].iloc[0])
+
+
+def test_a_second_launch_on_a_held_output_dir_is_refused(base):
+    from pipeline.experiment.lock import SweepLock
+    out = base / "held"
+    with SweepLock(out):  # as a running sweep would hold it
+        with pytest.raises(ConfigError, match=f"output_dir {out} is held by a running sweep"):
+            run_sweep(composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]"]))
+        assert not (out / "jobs.json").exists()

@@ -3,6 +3,7 @@ message naming the key or the folder, no traceback, no job folder."""
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -17,13 +18,17 @@ pytestmark = pytest.mark.slow  # one real command per case (~10 s each idle)
     (["dataset=[shared]", "data_root=/data"], "dataset.generated: missing keys ['format', 'root', 'scenes']"),
     (["protocol.budget=0"], "protocol.budget must be an integer >= 2, got 0"),
     (["seeds=zero"], "seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got 'zero'"),
+    (["tracking=mlflow", "tracking.uri=http://127.0.0.1:9"],
+     "tracking.uri http://127.0.0.1:9 cannot be reached"),
     (["protocol.initial_views=20"],
      "protocol on dataset.generated scene 'generated': initial_views=20 exceeds the pool of 14 views"),
 ])
 def test_bad_sweeps_exit_2_naming_the_problem_before_any_job(tmp_path, overrides, expected):
+    start = time.monotonic()
     proc = subprocess.run([str(BIN / "pipeline-run"), "experiment=debug", f"output_dir={tmp_path / 'o'}",
                            *overrides], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "config error" in proc.stderr and expected in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "o" / "jobs").exists()
+    assert time.monotonic() - start < 90  # no minutes of client retries (an unreachable server)

@@ -20,6 +20,7 @@ from pipeline.data.scene import Scene
 from pipeline.data.synthetic import generate
 from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
 from pipeline.experiment.executor import make_executor, scene_key
+from pipeline.experiment.lock import SweepLock, SweepLocked
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
@@ -171,10 +172,24 @@ def execution_order(jobs: list[dict]) -> list[dict]:
 
 
 def run_sweep(cfg: DictConfig) -> SweepSummary:
+    """Expand, validate and run a sweep (one sweep at a time per output folder)."""
     start = time.perf_counter()
     jobs = expand_jobs(cfg)
     output_dir = Path(str(cfg.output_dir))
-    output_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        lock = SweepLock(output_dir).acquire()
+    except SweepLocked as err:
+        raise ConfigError(str(err)) from None
+    if lock.stale is not None:
+        print(f"[{cfg.name}] note: took over a stale lock of a sweep that no longer runs "
+              f"(pid {lock.stale.get('pid')}, since {lock.stale.get('since')})", flush=True)
+    try:
+        return _run_sweep(cfg, jobs, output_dir, start)
+    finally:
+        lock.release()
+
+
+def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float) -> SweepSummary:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     (output_dir / "sweep_config.json").write_text(json.dumps(resolved, indent=1, default=str))
     records = RecordsFile(output_dir)

@@ -66,9 +66,35 @@ class NoTracker:
         pass
 
 
+REACH_TIMEOUT_S = 5.0
+
+
+def check_reachable(uri: str, timeout: float = REACH_TIMEOUT_S) -> None:
+    """A tracking server URI must answer (any HTTP status) before a sweep starts; otherwise one
+    clear ConfigError instead of minutes of client retries."""
+    import urllib.error
+    import urllib.request
+
+    from pipeline.experiment.build import ConfigError
+    if not uri.startswith(("http://", "https://")):
+        return
+    try:
+        urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout).close()
+    except urllib.error.HTTPError:
+        return  # it answered
+    except (urllib.error.URLError, OSError) as err:
+        reason = getattr(err, "reason", err)
+        raise ConfigError(f"tracking.uri {uri} cannot be reached ({reason}): start the server "
+                          f"(mlflow server --host ... --port ...), or run with tracking=none, or use the "
+                          f"embedded store under output_dir (tracking.uri=null)") from None
+
+
 class MlflowTracker:
     def __init__(self, uri: str | None, output_dir: Path, experiment: str):
         from mlflow import MlflowClient
+
+        if uri:
+            check_reachable(uri)
 
         output_dir = Path(output_dir).resolve()
         output_dir.mkdir(parents=True, exist_ok=True)
