@@ -102,3 +102,10 @@ def test_sweeps_run_seed_by_seed_so_an_early_stop_leaves_complete_pairs():
             enumerate((m, s) for m in ("gopre", "random") for s in (0, 1, 2))]
     order = [(j["seed"], j["method"]) for j in execution_order(jobs)]
     assert order == [(0, "gopre"), (0, "random"), (1, "gopre"), (1, "random"), (2, "gopre"), (2, "random")]
+
+
+def test_no_verdict_from_fewer_than_five_pairs(study):
+    final = study[(study["status"] == "FINISHED") & (study["seed"] < 2)]  # 4 pairs
+    better = final.assign(psnr=np.where(final["method"] == "fisherrf", final["psnr"] + 5, final["psnr"]))
+    (c,) = paired_comparisons(better, "gopre", "psnr")
+    assert c.n == 4 and c.low > 0 and verdict(c) == "4 pair(s): too few for a verdict"

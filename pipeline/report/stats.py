@@ -17,6 +17,7 @@ import pandas as pd
 PAIR_KEYS = ("dataset", "scene", "seed", "setting")
 BOOTSTRAP_SAMPLES = 10_000
 TIE_DB = 1e-9  # differences this small count as ties
+MIN_PAIRS = 5  # fewer pairs: the interval is printed but no verdict is drawn from it
 
 
 def curve_area(num_views: np.ndarray, psnr: np.ndarray) -> float:
@@ -104,9 +105,10 @@ def paired_comparisons(final: pd.DataFrame, reference: str, metric: str = "psnr"
 
 
 def verdict(c: PairedComparison) -> str:
-    """Plain words: whether the interval excludes zero, and on which side."""
-    if c.n < 2:
-        return "one pair: no interval"
+    """Plain words: whether the interval excludes zero, and on which side; no verdict from fewer
+    than ``MIN_PAIRS`` pairs (a percentile bootstrap over 2-4 values is far too narrow)."""
+    if c.n < MIN_PAIRS:
+        return f"{c.n} pair(s): too few for a verdict"
     if c.low > 0:
         return f"{c.method} better"
     if c.high < 0:

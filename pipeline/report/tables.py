@@ -201,7 +201,7 @@ def paired_to_markdown(table: PairedTable) -> str:
     lines += ["", f"Δ = method − {table.reference} over pairs (same dataset, scene, seed and setting; "
               "both finished); 95% percentile bootstrap interval of the mean over pairs; W/L/T = "
               f"pairs where the method is better / worse / equal. The verdict is 'better' only when "
-              "the interval excludes zero."]
+              "the interval excludes zero, and none is drawn from fewer than 5 pairs."]
     lines += [f"Note: {n}" for n in table.notes]
     return "\n".join(lines) + "\n"
 
