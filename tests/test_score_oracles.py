@@ -263,3 +263,17 @@ def test_activenerf_fit_lowers_the_nll_of_the_taken_views(setup):
         return float((residual / (2 * v) + 0.5 * torch.log(v)).mean())
     fitted = strategy.fit_variance(ctx)
     assert nll(fitted) < nll(torch.full((len(g),), -3.0, dtype=F64)) - 1e-3
+
+
+def test_gopre_without_the_sh_rest_scores_on_the_other_groups_only(setup):
+    g, cams, fishers = setup
+    groups = ("means", "log_scales", "quats", "logit_opacities", "sh0")
+    h = flat(fishers[0], groups)
+    m = (flat(fishers[4], groups) + flat(fishers[5], groups)) / 2
+    expected = {c: float(torch.log1p(1 / (h + LAM + flat(fishers[c], groups) / TAU ** 2) * m / TAU ** 2).sum())
+                for c in (1, 2, 3)}
+    sel = make_strategy("gopre", tau=TAU, lam=LAM, fisher_groups="without_sh_rest").select(context(g, cams))
+    for c, value in expected.items():
+        assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"gopre without SH rest, view {c}"
+    with pytest.raises(ValueError, match="fisher_groups must be one of \\['all', 'without_sh_rest'\\], got 'some'"):
+        make_strategy("gopre", fisher_groups="some")

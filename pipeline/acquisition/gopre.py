@@ -2,23 +2,27 @@
 
 M is the goal Hessian, the mean Fisher of K probe poses from the target manifold. Ablations:
 ``goal="identity"`` (M = I, w/o goal Hessian), small ``tau`` (w/o observation noise),
-``score="trace"`` (trace approximation), ``score="mc"`` (direct Monte-Carlo over the probes).
+``score="trace"`` (trace approximation), ``score="mc"`` (direct Monte-Carlo over the probes),
+``fisher_groups="without_sh_rest"`` (the Fisher without the higher-order SH coefficients).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
                                        pool_and_train_fishers, timed_selection)
 from pipeline.fisher.exact import FisherSpec
+from pipeline.fisher.features import PARAM_GROUPS
 from pipeline.fisher.posterior import (goal_hessian, gopre_score, monte_carlo_score,
                                        posterior_variance, trace_score, updated_variance)
 
 SCORES = ("logdet", "trace", "mc")
 GOALS = ("probes", "identity")
+# the Fisher's parameter groups (ablation): every raw parameter, or without the SH rest (degree >= 1)
+FISHER_GROUPS = {"all": PARAM_GROUPS, "without_sh_rest": tuple(g for g in PARAM_GROUPS if g != "shN")}
 
 
 @dataclass
@@ -28,9 +32,14 @@ class GoPreStrategy:
     tau: float = 1.0
     goal: str = "probes"
     score: str = "logdet"
-    spec: FisherSpec = FisherSpec()
+    fisher_groups: str = "all"
+    spec: FisherSpec = field(init=False)
 
     def __post_init__(self) -> None:
+        if self.fisher_groups not in FISHER_GROUPS:
+            raise ValueError(f"gopre fisher_groups must be one of {sorted(FISHER_GROUPS)}, "
+                             f"got {self.fisher_groups!r}")
+        self.spec = FisherSpec(groups=FISHER_GROUPS[self.fisher_groups])
         if self.score not in SCORES:
             raise ValueError(f"gopre score must be one of {SCORES}, got {self.score!r}")
         if self.goal not in GOALS:

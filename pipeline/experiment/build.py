@@ -60,7 +60,7 @@ def _set_dotted(job: dict, dotted: str, value) -> None:
         if not isinstance(node.get(part), dict):
             raise ConfigError(f"sweep: {dotted!r} is not a job key (no {part!r})")
         node = node[part]
-    if parts[-1] not in node:
+    if parts[-1] not in node and parts[:-1] != ["options"]:  # a strategy may take an option not set yet
         raise ConfigError(f"sweep: {dotted!r} is not a job key; job keys: protocol.*, splat.*, options.*, "
                           "renders, uncertainty.*")
     node[parts[-1]] = value
