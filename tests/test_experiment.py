@@ -124,7 +124,16 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
     history = client.get_metric_history(run.info.run_id, "test_psnr")
     assert sorted(m.step for m in history) == [2, 3]  # step = number of views
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
-    assert {"selected_views.json", "renders", "config.json", "result.json"} <= artifacts
+    assert {"selected_views.json", "renders", "config.json", "result.json", "model.ply"} <= artifacts
+    # the final model as a standard PLY, in MLflow and in the job folder, exportable from either
+    from pipeline.experiment.export import main as export_main
+    from pipeline.splat import ply
+    job_dir = ray_dir / "jobs" / run.data.tags["config_hash"]
+    final = ray_records.query("kind == 'final' and config_hash == @run.data.tags['config_hash']")
+    assert len(ply.load(job_dir / "artifacts" / "model.ply")) == int(final["num_gaussians"].iloc[0])
+    assert export_main([run.info.run_id, "--mlflow-uri", summary.tracking_uri, "--format", "splat",
+                        "--out", str(tmp_path / "m.splat")]) == 0
+    assert (tmp_path / "m.splat").stat().st_size == 32 * int(final["num_gaussians"].iloc[0])
     # the report reads the records (and MLflow) and makes the table and the figures
     from pipeline.report.report import make_report
     report = make_report(ray_dir, tmp_path / "report")

@@ -32,3 +32,10 @@ def test_bad_sweeps_exit_2_naming_the_problem_before_any_job(tmp_path, overrides
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "o" / "jobs").exists()
     assert time.monotonic() - start < 90  # no minutes of client retries (an unreachable server)
+
+
+def test_an_unreadable_init_ply_is_refused_before_any_job(tmp_path):
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
+    proc = subprocess.run([str(BIN / "pipeline-run"), "experiment=debug", f"output_dir={tmp_path / 'o'}",
+                           f"+splat.init=ply:{tmp_path / 'bad.ply'}"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and f"splat.init: {tmp_path / 'bad.ply'}: only binary little-endian PLY" in proc.stderr

@@ -34,6 +34,7 @@ class EpisodeConfig:
     curve_test_views: int | None = None  # test views for the per-round curve (None: all)
     lpips: bool = True                  # try LPIPS at the final evaluation
     seed: int = 0
+    init: str | None = None             # "ply:PATH": start from a 3DGS PLY instead of points/box
 
     def __post_init__(self) -> None:
         if self.post_selection not in POLICIES:
@@ -44,12 +45,20 @@ class EpisodeConfig:
             raise ValueError(f"views_per_round must be >= 1, got {self.views_per_round}")
         if not 0 < self.pool_keep_fraction <= 1:
             raise ValueError(f"pool_keep_fraction must be in (0, 1], got {self.pool_keep_fraction}")
+        if self.init is not None and not (isinstance(self.init, str) and self.init.startswith("ply:")
+                                          and len(self.init) > 4):
+            raise ValueError(f"init must be 'ply:PATH' or null, got {self.init!r}")
 
     def with_changes(self, **changes) -> "EpisodeConfig":
         return replace(self, **changes)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """Plain data (checkpoint fingerprints); ``init`` only when set, so checkpoints written
+        before the option existed still match."""
+        out = asdict(self)
+        if out["init"] is None:
+            del out["init"]
+        return out
 
 
 def paper_episode(**changes) -> EpisodeConfig:

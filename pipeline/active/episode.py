@@ -32,7 +32,8 @@ from pipeline.eval.metrics import LpipsMetric, evaluate_views
 from pipeline.fit.init import from_point_cloud, random_in_box
 from pipeline.fit.trainer import Trainer
 from pipeline.memory import peak_rss_mb
-from pipeline.splat import Gaussians
+from pipeline.splat import Gaussians, ply
+from pipeline.splat.gaussians import num_sh_bases
 
 # A final PSNR this far below the last round's, on the same curve views, flags the episode.
 DEGRADED_DB = 3.0
@@ -83,9 +84,12 @@ class EpisodeResult:
 
 
 def initial_gaussians(scene: Scene, cfg: EpisodeConfig) -> Gaussians:
-    """SfM points when the scene has them (a seeded subset of at most ``init_points``), else a
-    random cloud in the scene box."""
+    """``init="ply:PATH"``: the Gaussians of a 3DGS PLY (SH padded with zeros or cut to the fit's
+    degree); else SfM points when the scene has them (a seeded subset of at most ``init_points``),
+    else a random cloud in the scene box."""
     fit = cfg.fit
+    if cfg.init is not None:
+        return with_sh_degree(ply.load(cfg.init[len("ply:"):]), fit.sh_degree)
     if scene.points is not None and len(scene.points):
         gen = torch.Generator().manual_seed(cfg.seed)
         keep = seeded_subset(list(range(len(scene.points))), min(fit.init_points, len(scene.points)), gen)
@@ -99,6 +103,14 @@ def uniform_subset(ids: list[int], count: int | None) -> list[int]:
     if count is None or count >= len(ids):
         return list(ids)
     return [ids[i] for i in np.linspace(0, len(ids) - 1, count).round().astype(int)]
+
+
+def with_sh_degree(g: Gaussians, degree: int) -> Gaussians:
+    """``g`` with exactly the SH coefficients of ``degree``: extra ones dropped, missing ones zero."""
+    if degree <= g.sh_degree:
+        return g.at_sh_degree(degree)
+    pad = g.shN.new_zeros(len(g), num_sh_bases(degree) - 1 - g.shN.shape[1], 3)
+    return g.replace(shN=torch.cat([g.shN, pad], dim=1))
 
 
 def views_schedule(views: ProtocolViews, cfg: EpisodeConfig) -> Schedule:

@@ -27,7 +27,8 @@ from pipeline.experiment.provenance import code_version
 JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: overrides for this method
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
-              "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips"}
+              "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
+              "init"}  # init: optional (+splat.init=ply:PATH), absent from the presets' hashes
 NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")
 
 
@@ -157,7 +158,7 @@ def episode_config(job: dict) -> EpisodeConfig:
         fit = fit.with_changes(seed=job["seed"])
         protocol = _protocol(job["protocol"])
         changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
-                                          "views_per_round", "pool_keep_fraction", "lpips")
+                                          "views_per_round", "pool_keep_fraction", "lpips", "init")
                    if splat.get(k) is not None}
         if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
             changes["curve_test_views"] = None

@@ -27,7 +27,7 @@ from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.experiment.build import episode_config, uncertainty_config
-from pipeline.splat import render
+from pipeline.splat import ply, render
 
 
 def set_threads(threads: int) -> None:
@@ -93,7 +93,8 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
         preds = render(result.gaussians, views.cameras[shown], background).rgb
     truth = views.images.stack(shown).to(preds)
     artifacts = {"selected_views.json": json.dumps({"initial": result.initial, "selected": result.selected,
-                                                    "probes": result.probes}).encode()}
+                                                    "probes": result.probes}).encode(),
+                 "model.ply": ply.export_bytes(result.gaussians)}  # the final model, INRIA 3DGS PLY
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     return {"result": result.to_dict(), "artifacts": artifacts}

@@ -24,6 +24,7 @@ from pipeline.experiment.lock import SweepLock, SweepLocked
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
+from pipeline.splat import ply
 
 
 @dataclass
@@ -145,11 +146,22 @@ def protocol_errors(jobs: list[dict], scenes: dict[str, Scene]) -> list[str]:
     return errors
 
 
+def init_errors(jobs: list[dict]) -> list[str]:
+    """splat.init=ply:PATH must name a readable 3DGS PLY."""
+    errors = []
+    for path in sorted({j["splat"]["init"][len("ply:"):] for j in jobs if j["splat"].get("init")}):
+        try:
+            ply.load(path)
+        except (OSError, ValueError) as err:
+            errors.append(f"splat.init: {err}")
+    return errors
+
+
 def validate_sweep(jobs: list[dict]) -> dict[str, Scene]:
     """Read every scene and build every protocol before Ray or MLflow start; all problems are
     reported at once as one ConfigError (one line each)."""
     scenes, errors = prepare_scenes(jobs)
-    errors += protocol_errors(jobs, scenes)
+    errors += protocol_errors(jobs, scenes) + init_errors(jobs)
     if errors:
         raise ConfigError(f"{len(errors)} problem(s), nothing was started:\n  " + "\n  ".join(errors))
     return scenes

@@ -117,7 +117,8 @@ class Trainer:
                 "optimizer": self.optimizer.state_dict(), "step": self.step, "extent": self.extent,
                 "generator": self.generator.get_state(), "order": list(self._order),
                 "stats": [self.stats.grad_sum, self.stats.count, self.stats.max_radii],
-                "nonfinite_steps": self.nonfinite_steps}
+                "nonfinite_steps": self.nonfinite_steps,
+                "active_sh_degree": self.active_sh_degree}  # read by exports, not by resume
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a ``state_dict`` (the views are set separately, before this call)."""

@@ -1,0 +1,108 @@
+"""Standard 3DGS files: gsplat's exporter writes, our reader reads back identical parameters and
+renders; the INRIA layout (channel-major f_rest, logit opacity, log scales, w-first quaternion)
+is checked on bytes read with struct, not with our reader."""
+
+import struct
+
+import pytest
+import torch
+
+from pipeline.splat import ply, render
+from pipeline.splat.gaussians import Gaussians
+from pipeline.splat.scenes import orbit_cameras, random_scene
+
+pytest.importorskip("gsplat")
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_round_trip_gives_identical_parameters_and_renders(tmp_path, degree):
+    g = random_scene(200, seed=degree, sh_degree=degree)
+    path = ply.save(g, tmp_path / "model.ply")
+    back = ply.load(path)
+    for name, value in g.params().items():
+        assert torch.equal(getattr(back, name), value.float()), name
+    cams = orbit_cameras(2, 40, 32)
+    assert torch.equal(render(back, cams).rgb, render(g, cams).rgb)
+
+
+def test_the_file_has_the_inria_layout(tmp_path):
+    shn = torch.arange(3 * 3, dtype=torch.float32).reshape(1, 3, 3) + 100  # [1, K=3, 3]: coefficient k, channel c
+    g = Gaussians(means=torch.tensor([[1.0, 2.0, 3.0]]), log_scales=torch.tensor([[-1.0, -2.0, -3.0]]),
+                  quats=torch.tensor([[0.5, 0.1, 0.2, 0.3]]), logit_opacities=torch.tensor([0.7]),
+                  sh0=torch.tensor([[[10.0, 11.0, 12.0]]]), shN=shn)
+    data = ply.save(g, tmp_path / "one.ply").read_bytes()
+    header, body = data.split(b"end_header\n")
+    names = [line.split()[-1] for line in header.decode().splitlines() if line.startswith("property")]
+    values = dict(zip(names, struct.unpack("<" + "f" * len(names), body)))
+    assert [values[f"f_rest_{i}"] for i in range(9)] == [100, 103, 106, 101, 104, 107, 102, 105, 108]
+    assert [values[n] for n in ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2")] == [1, 2, 3, 10, 11, 12]
+    assert values["opacity"] == pytest.approx(0.7) and values["scale_2"] == -3.0
+    assert [values[f"rot_{i}"] for i in range(4)] == pytest.approx([0.5, 0.1, 0.2, 0.3])
+
+
+def test_viewer_formats_are_written_and_bad_files_are_named(tmp_path):
+    g = random_scene(300, seed=1, sh_degree=1)
+    assert ply.save(g, tmp_path / "m.splat", "splat").stat().st_size == 300 * 32  # 32 bytes per splat
+    compressed = ply.save(g, tmp_path / "m.compressed.ply", "ply_compressed")
+    with pytest.raises(ValueError, match=r"a compressed PLY \(chunk element\) is a viewer format"):
+        ply.load(compressed)
+    with pytest.raises(ValueError, match="export format must be one of"):
+        ply.export_bytes(g, "obj")
+    (tmp_path / "bad.ply").write_bytes(b"hello")
+    with pytest.raises(ValueError, match=r"bad.ply: not a PLY file"):
+        ply.load(tmp_path / "bad.ply")
+    whole = (tmp_path / "m.ply")
+    ply.save(g, whole)
+    (tmp_path / "cut.ply").write_bytes(whole.read_bytes()[:-10])
+    with pytest.raises(ValueError, match=r"cut.ply: truncated"):
+        ply.load(tmp_path / "cut.ply")
+
+
+def test_export_cli_from_a_checkpoint_a_job_folder_and_a_ply(tmp_path, capsys):
+    """A checkpoint exports the model of its last round at that round's SH degree; a job folder
+    its final model.ply; errors exit 1 naming the source."""
+    from pipeline.active import tiny_episode
+    from pipeline.active.episode import Episode
+    from pipeline.active.checkpoint import save_checkpoint
+    from pipeline.data.load import load_scene
+    from pipeline.data.synthetic import generate
+    from pipeline.experiment.export import main
+    cfg = tiny_episode(strategy="random")
+    scene = load_scene(generate(tmp_path / "scene", seed=0, size=32, n_train=8, n_test=4), width=32)
+    ep = Episode(scene, cfg)
+    ep.train(40, progress=False)  # below the first SH step: degree 0 of the stored 1
+    save_checkpoint(tmp_path / "job" / "checkpoint", ep.state("key"))
+    assert main([str(tmp_path / "job"), "--out", str(tmp_path / "a.ply")]) == 0
+    exported = ply.load(tmp_path / "a.ply")
+    expected = ep.trainer.rendered_gaussians
+    assert exported.sh_degree == 0 == ep.trainer.active_sh_degree < cfg.fit.sh_degree
+    for name, value in expected.params().items():
+        assert torch.equal(getattr(exported, name), value), name
+    ply.save(expected, tmp_path / "job" / "artifacts" / "model.ply")  # a finished job: its final model
+    assert main([str(tmp_path / "job"), "--format", "splat"]) == 0
+    assert (tmp_path / "job" / "model.splat").stat().st_size == 32 * len(expected)
+    assert main([str(tmp_path / "a.ply"), "--format", "ply_compressed"]) == 0
+    assert (tmp_path / "a-export.compressed.ply").exists()
+    capsys.readouterr()
+    assert main([str(tmp_path / "nope")]) == 1
+    assert "nope: no such file or folder" in capsys.readouterr().err
+
+
+def test_an_episode_starts_from_a_ply_with_its_sh_fitted_to_the_degree(tmp_path):
+    from pipeline.active import tiny_episode
+    from pipeline.active.episode import Episode
+    from pipeline.data.load import load_scene
+    from pipeline.data.synthetic import generate
+    scene = load_scene(generate(tmp_path / "scene", seed=0, size=32, n_train=8, n_test=4), width=32)
+    source = random_scene(150, seed=4, sh_degree=3)
+    ply.save(source, tmp_path / "init.ply")
+    cfg = tiny_episode(strategy="random", init=f"ply:{tmp_path / 'init.ply'}")  # tiny: degree 1
+    init = Episode(scene, cfg).init
+    assert torch.equal(init.means, source.means) and init.sh_degree == cfg.fit.sh_degree == 1
+    assert torch.equal(init.shN, source.shN[:, :3])
+    low = random_scene(20, seed=5, sh_degree=0)
+    ply.save(low, tmp_path / "low.ply")
+    padded = Episode(scene, cfg.with_changes(init=f"ply:{tmp_path / 'low.ply'}")).init
+    assert padded.shN.shape == (20, 3, 3) and padded.shN.abs().sum() == 0
+    with pytest.raises(ValueError, match="init must be 'ply:PATH' or null, got 'init.ply'"):
+        cfg.with_changes(init="init.ply")
