@@ -4,7 +4,10 @@
     pipeline-run experiment=table1_global data_root=/data splat=cpu executor.address=auto
     pipeline-run experiment=science plan=true      # the job table and an estimate; starts nothing
 
-The exit status is the number of failed jobs (capped at 100); 0 when every job finished.
+The exit status is the number of failed jobs (capped at 100); 0 when every job finished; 2 on a
+config error (nothing started); 130 after Ctrl-C (SIGINT), 143 after SIGTERM: running jobs are
+cancelled, their MLflow runs marked KILLED, and the same command resumes them from their last
+round checkpoint.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.plan import plan_jobs, plan_text, slots
 from pipeline.experiment.sweep import run_sweep
 
@@ -51,11 +55,14 @@ def main(cfg: DictConfig) -> None:
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
         print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs)))
         return
+    install_stop_handlers()  # Ctrl-C / SIGTERM: a clean stop with exit status 128 + signal
     try:
         summary = run_sweep(cfg)
     except ConfigError as err:
         print(f"pipeline-run: config error: {err}", file=sys.stderr)
         sys.exit(2)
+    except SweepInterrupted as stop:
+        sys.exit(stop.exit_status)
     print(f"[{summary.name}] finished {summary.finished}, failed {summary.failed}, skipped {summary.skipped} "
           f"of {summary.jobs} jobs in {summary.seconds:.0f} s; records: {summary.output_dir}/records.parquet"
           + (f"; MLflow: {summary.tracking_uri}" if summary.tracking_uri else ""), flush=True)

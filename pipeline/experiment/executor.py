@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import os
 import traceback
+from pathlib import Path
 from typing import Callable
 
 from pipeline.data.scene import Scene
+from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.job import run_with_retries
 
 OnDone = Callable[[dict, dict], None]
@@ -28,11 +30,17 @@ POLL_SECONDS = 0.5  # how often the Ray driver looks for round messages while jo
 class LocalExecutor:
     slots = 1
 
+    def __init__(self):
+        self.running: list[dict] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
+
     def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
         for job in jobs:
             report = None if on_round is None else (lambda message, job=job: on_round(job, message))
-            on_done(job, run_with_retries(job, scenes.get(scene_key(job)), report))
+            self.running = [job]
+            outcome = run_with_retries(job, scenes.get(scene_key(job)), report)
+            self.running = []
+            on_done(job, outcome)
 
 
 def scene_key(job: dict) -> str:
@@ -72,6 +80,7 @@ class RayExecutor:
         self.address, self.num_cpus = address, num_cpus
         self.gpus_per_job, self.max_retries = gpus_per_job, max_retries
         self.slots = 1
+        self.running: list[dict] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
 
     def _start(self):
         """Ray, and whether this call started it (then ``map`` shuts it down again)."""
@@ -90,14 +99,14 @@ class RayExecutor:
     def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
         ray, started_here = self._start()
-        channel = None
+        install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
+        channel, pending = None, {}
         try:
             channel = RoundChannel(jobs, on_round) if on_round is not None else None
             refs = {key: ray.put(scene) for key, scene in scenes.items()}  # once per scene
             cpus = ray.cluster_resources().get("CPU", 1)
             self.slots = max(1, int(cpus // max(1, min(j["execution"]["threads"] for j in jobs)))) if jobs else 1
             task = ray.remote(_remote_run)
-            pending = {}
             for job in jobs:
                 options = {"num_cpus": job["execution"]["threads"], "num_gpus": self.gpus_per_job,
                            "max_retries": self.max_retries, "name": f"{job['method']}:{job['scene']}"}
@@ -117,11 +126,28 @@ class RayExecutor:
                     outcome = {"status": "FAILED", "attempts": self.max_retries + 1, "errors": [tb],
                                "traceback": tb, "result": None, "artifacts": {"traceback.txt": tb.encode()}}
                 on_done(job, outcome)
+        except SweepInterrupted:
+            self.running = self._cancel(ray, pending)
+            raise
         finally:
             if channel is not None:
                 channel.close()
             if started_here:
                 ray.shutdown()
+
+    @staticmethod
+    def _cancel(ray, pending: dict) -> list[dict]:
+        """Cancel every pending task (force: the worker processes stop); returns the jobs that
+        had started (those that never started are simply not run)."""
+        started = []
+        for ref, job in pending.items():
+            try:
+                ray.cancel(ref, force=True)
+            except Exception:  # already finished or gone: nothing to stop
+                pass
+            if Path(job["execution"]["job_dir"]).exists():  # run_job made its folder: it started
+                started.append(job)
+        return started
 
 
 def make_executor(cfg: dict):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -20,6 +20,7 @@ from pipeline.data.scene import Scene
 from pipeline.data.synthetic import generate
 from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
 from pipeline.experiment.executor import make_executor, scene_key
+from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.lock import SweepLock, SweepLocked
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
@@ -37,6 +38,8 @@ class SweepSummary:
     failed: int
     seconds: float
     tracking_uri: str | None
+    interrupted: list[str] = field(default_factory=list)  # config hashes a stop signal cut short
+    stopped_by: str | None = None
 
 
 class Progress:
@@ -217,10 +220,13 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     executor = make_executor(resolved["executor"])
     failed = 0
     if todo:
-        tracker.start(resolved, len(todo))
         progress = Progress(str(cfg.name), len(todo), 1)
 
         def on_done(job: dict, outcome: dict) -> None:
+            with critical():  # a stop signal waits until the job is recorded and tracked
+                record(job, outcome)
+
+        def record(job: dict, outcome: dict) -> None:
             nonlocal failed
             failed += outcome["status"] != "FINISHED"
             try:
@@ -234,6 +240,10 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             progress.update(job, outcome)
 
         def on_round(job: dict, message: dict) -> None:
+            with critical():
+                track_round(job, message)
+
+        def track_round(job: dict, message: dict) -> None:
             progress.round(job, message)
             try:
                 tracker.log_round(job, message)
@@ -241,7 +251,24 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
                 print(f"[{cfg.name}] warning: tracking a round failed for {job['config_hash']}: {err}",
                       flush=True)
 
-        executor.map(todo, scenes, on_done, on_round)
+        try:
+            with critical():
+                tracker.start(resolved, len(todo))
+            executor.map(todo, scenes, on_done, on_round)
+        except SweepInterrupted as stop:
+            ignore_stop_signals()  # a second Ctrl-C must not cut the bookkeeping short
+            interrupted = [j["config_hash"] for j in getattr(executor, "running", [])]
+            finished = progress.done - failed
+            summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
+                                   finished, failed, round(time.perf_counter() - start, 1), tracker.uri,
+                                   interrupted=interrupted, stopped_by=str(stop))
+            tracker.interrupt(asdict(summary))
+            (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
+            print(f"[{cfg.name}] {stop}: finished {finished}, failed {failed}, interrupted "
+                  f"{len(interrupted)}, not started {len(todo) - progress.done - len(interrupted)} of "
+                  f"{len(todo)} jobs; relaunch the same command to resume (interrupted jobs continue from "
+                  f"their last round checkpoint)", flush=True)
+            raise
     summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
                            len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri)
     tracker.end(asdict(summary))

@@ -65,6 +65,9 @@ class NoTracker:
     def end(self, summary: dict) -> None:
         pass
 
+    def interrupt(self, summary: dict) -> None:
+        pass
+
 
 REACH_TIMEOUT_S = 5.0
 
@@ -208,6 +211,16 @@ class MlflowTracker:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_bytes(data)
             self.client.log_artifacts(run_id, str(folder))
+
+    def interrupt(self, summary: dict) -> None:
+        """A stop signal: the child runs of interrupted jobs and the parent run end KILLED."""
+        for run_id, _ in self.live.values():
+            self.client.set_terminated(run_id, "KILLED")
+        self.live.clear()
+        if self.parent is not None:
+            self._log_metrics(self.parent, [(k, v, 0) for k, v in summary.items()
+                                            if isinstance(v, (int, float)) and not isinstance(v, bool)])
+            self.client.set_terminated(self.parent, "KILLED")
 
     def end(self, summary: dict) -> None:
         if self.parent is None:

@@ -1,0 +1,94 @@
+"""Stopping the real ``pipeline-run`` driver of a Ray sweep with SIGINT (Ctrl-C) or SIGTERM: it
+stops within seconds with 128 + the signal, finished jobs stay recorded, MLflow keeps no run
+RUNNING, and the same command resumes to the results of an uninterrupted sweep."""
+
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.experiment.records import RecordsFile
+
+pytestmark = pytest.mark.slow
+BIN = Path(sys.executable).parent
+SWEEP = ["experiment=debug", "seeds=[0,1]", "splat.iterations=160", "dataset.generated.generate.size=32",
+         "job.retries=0"]
+
+
+def start(out: Path, *extra) -> tuple[subprocess.Popen, "queue.Queue[str]"]:
+    proc = subprocess.Popen([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", "executor.num_cpus=2",
+                             "tracking=mlflow", f"output_dir={out}", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: "queue.Queue[str]" = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
+    return proc, lines
+
+
+def wait_for(lines, text: str, timeout: float) -> list[str]:
+    seen, end = [], time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            line = lines.get(timeout=1)
+        except queue.Empty:
+            continue
+        seen.append(line)
+        if text in line:
+            return seen
+    raise AssertionError(f"no line with {text!r} within {timeout} s; got:\n" + "".join(seen))
+
+
+def drain(lines) -> str:
+    out = []
+    while not lines.empty():
+        out.append(lines.get())
+    return "".join(out)
+
+
+def run_statuses(out: Path) -> dict[str, str]:
+    from mlflow import MlflowClient
+    client = MlflowClient(f"sqlite:///{out.resolve() / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("debug")
+    return {r.info.run_id: r.info.status for r in client.search_runs([exp.experiment_id])}
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_driver_exits_cleanly_and_a_relaunch_resumes(tmp_path, sig):
+    out = tmp_path / "sweep"
+    proc, lines = start(out)
+    wait_for(lines, "round 1/", timeout=300)  # a job is between rounds, with a checkpoint
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    rc = proc.wait(timeout=120)
+    stopped_after = time.monotonic() - sent
+    text = drain(lines)
+    assert rc == 128 + sig, text
+    assert f"stopped by {sig.name}" in text and "relaunch the same command to resume" in text
+    assert "PC: @" not in text and "Traceback" not in text  # no Ray stack dump, no traceback
+    assert stopped_after < 60, f"stopped {stopped_after:.0f} s after the signal"
+    statuses = run_statuses(out)
+    assert "RUNNING" not in statuses.values() and "KILLED" in statuses.values()
+    before = RecordsFile(out).frame
+    done_before = set(before.query("kind == 'final' and status == 'FINISHED'")["config_hash"]) \
+        if not before.empty else set()
+    assert not (out / ".sweep.lock").exists()
+    if sig != signal.SIGINT:
+        return
+    again = subprocess.run([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", "executor.num_cpus=2",
+                            "tracking=mlflow", f"output_dir={out}"], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert f"{len(done_before)} already finished (skipped)" in again.stdout
+    frame = RecordsFile(out).frame.query("kind == 'final'")
+    assert len(frame) == 4 and set(frame["status"]) == {"FINISHED"}
+    # equal to an uninterrupted sweep of the same jobs
+    ref = tmp_path / "reference"
+    subprocess.run([str(BIN / "pipeline-run"), *SWEEP, "executor=local", "tracking=none", f"output_dir={ref}"],
+                   check=True, capture_output=True, timeout=600)
+    cols = ["config_hash", "psnr", "ssim", "selected"]
+    ours = frame[cols].sort_values("config_hash").reset_index(drop=True)
+    theirs = RecordsFile(ref).frame.query("kind == 'final'")[cols].sort_values("config_hash").reset_index(drop=True)
+    assert ours.astype(str).equals(theirs.astype(str))
