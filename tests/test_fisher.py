@@ -130,7 +130,12 @@ def test_predictive_variance_map_matches_dense_jacobian():
 
 
 def test_predictive_entropy_parameter_form_equals_output_form_for_diagonal_fisher():
-    from pipeline.fisher.posterior import predictive_entropy
+    from pipeline.fisher.posterior import predictive_entropy, trace_score
+    sx, probes = torch.tensor([[0.3, 0.2, 0.9]], dtype=F64), torch.tensor([[1.0, 2.0, 0.5], [0.1, 0.0, 3.0]], dtype=F64)
+    assert trace_score(sx, f).item() == pytest.approx((sx * f).sum().item(), rel=1e-14)
+    assert gopre_score(sx, f).item() == pytest.approx(torch.log1p(sx * f).sum().item(), rel=1e-14)
+    assert monte_carlo_score(sx, probes).item() == pytest.approx(
+        torch.log1p(sx * probes).sum(-1).mean().item(), rel=1e-14)
     gen = torch.Generator().manual_seed(2)
     s, f = torch.rand(7, generator=gen, dtype=F64), torch.rand(7, generator=gen, dtype=F64)
     J = torch.diag(f.sqrt())  # a view whose J^T J is exactly diag(f), 7 outputs
@@ -282,7 +287,12 @@ def test_paper_defaults_tau_is_one():
     assert log_det_information(s, f).item() == pytest.approx(torch.log1p(s * f).sum().item(), rel=1e-14)
     expected = torch.linalg.slogdet(torch.eye(3, dtype=F64) + s.sqrt()[:, None] * dense * s.sqrt()[None])[1]
     assert log_det_information(s, dense).item() == pytest.approx(expected.item(), rel=1e-14)
-    from pipeline.fisher.posterior import predictive_entropy
+    from pipeline.fisher.posterior import predictive_entropy, trace_score
+    sx, probes = torch.tensor([[0.3, 0.2, 0.9]], dtype=F64), torch.tensor([[1.0, 2.0, 0.5], [0.1, 0.0, 3.0]], dtype=F64)
+    assert trace_score(sx, f).item() == pytest.approx((sx * f).sum().item(), rel=1e-14)
+    assert gopre_score(sx, f).item() == pytest.approx(torch.log1p(sx * f).sum().item(), rel=1e-14)
+    assert monte_carlo_score(sx, probes).item() == pytest.approx(
+        torch.log1p(sx * probes).sum(-1).mean().item(), rel=1e-14)
     assert predictive_entropy(s, f, 12).item() == pytest.approx(
         0.5 * torch.log1p(s * f).sum().item() + 6 * math.log(2 * math.pi * math.e), rel=1e-14)
 
