@@ -139,3 +139,23 @@ def test_a_degraded_job_gets_a_note_under_its_table_and_in_the_run_list(records,
     assert "random on bonsai (seed 0): final PSNR 18.47 dB below its last round" in table
     assert "degraded" in (tmp_path / "out" / "runs.csv").read_text().splitlines()[0]
     assert "18.47" in (tmp_path / "out" / "table.tex").read_text()
+
+
+def test_qualitative_grid_shows_the_ground_truth_once_then_a_column_per_method(tmp_path):
+    """Render artifacts are [truth | render]; the grid has one row per test view, the truth in the
+    first column only, then each method's render."""
+    from PIL import Image
+
+    from pipeline.report.figures import qualitative_grid
+    truth = {v: np.full((8, 8, 3), 40 * v, np.uint8) for v in (1, 2)}
+    renders = {}
+    for k, method in enumerate(("gopre", "random")):
+        folder = tmp_path / method
+        folder.mkdir()
+        for v, t in truth.items():
+            Image.fromarray(np.concatenate([t, np.full((8, 8, 3), 200 + k, np.uint8)], 1)).save(
+                folder / f"test_{v:04d}.png")
+        renders[method] = sorted(folder.glob("*.png"))
+    layout = qualitative_grid(renders, tmp_path / "grid.png")
+    assert layout == {"columns": ["ground truth", "gopre", "random"], "rows": ["test_0001", "test_0002"]}
+    assert (tmp_path / "grid.png").stat().st_size > 1000

@@ -82,3 +82,39 @@ def image_grid(images: dict[str, list[Path]], path: Path, title: str) -> dict[st
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return {label: len(imgs) for label, imgs in rows}
+
+
+def qualitative_grid(renders: dict[str, list[Path]], path: Path) -> dict[str, list[str]]:
+    """Rows = test views; the first column the ground truth (once per view), then one column per
+    method. Each render artifact is [ground truth | render] side by side; views are matched across
+    methods by file name. Returns the column and row labels."""
+    views = sorted({p.name for files in renders.values() for p in files})
+    if not views:
+        return {}
+    halves = {}  # (method, view) -> (truth, render)
+    for method, files in renders.items():
+        for p in files:
+            img = np.asarray(Image.open(p).convert("RGB"))
+            half = img.shape[1] // 2
+            halves[(method, p.name)] = (img[:, :half], img[:, half:])
+    methods = [m for m in renders if any((m, v) in halves for v in views)]
+    h, w = next(iter(halves.values()))[0].shape[:2]
+    cols = ["ground truth"] + methods
+    fig, axes = plt.subplots(len(views), len(cols), figsize=(len(cols) * w / h * 2.0, len(views) * 2.0),
+                             squeeze=False)
+    for i, view in enumerate(views):
+        truth = next(halves[(m, view)][0] for m in methods if (m, view) in halves)
+        for j, label in enumerate(cols):
+            ax = axes[i][j]
+            ax.axis("off")
+            image = truth if j == 0 else halves.get((label, view), (None, None))[1]
+            if image is not None:
+                ax.imshow(image)
+            if i == 0:
+                ax.set_title(label, fontsize=9)
+        axes[i][0].text(-0.05, 0.5, Path(view).stem, transform=axes[i][0].transAxes, rotation=90,
+                        va="center", ha="right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return {"columns": cols, "rows": [Path(v).stem for v in views]}

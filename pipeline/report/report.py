@@ -156,8 +156,7 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
             curves, _finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
     renders = _artifact_images(sweep_dir, _finished(frame, "final", "episode"), "renders")
     if any(renders.values()):
-        made["qualitative.png"] = figures.image_grid(
-            renders, fig_dir / "qualitative.png", "ground truth | render, per test view")
+        made["qualitative.png"] = figures.qualitative_grid(renders, fig_dir / "qualitative.png")
     maps = _artifact_images(sweep_dir, _finished(frame, "final", "uncertainty"), "uncertainty")
     if any(maps.values()):
         made["uncertainty_maps.png"] = figures.image_grid(
