@@ -235,16 +235,3 @@ def test_strategies_see_the_model_at_the_active_sh_degree(scene_dir, monkeypatch
     assert seen == expected
     assert result.gaussians.sh_degree == min(fit.sh_degree, result.rounds[-1].iteration // fit.sh_degree_interval)
 
-
-def test_at_sh_degree_renders_as_the_full_model_at_that_degree():
-    import torch
-    from pipeline.splat import render
-    from pipeline.splat.scenes import orbit_cameras, random_scene
-    g = random_scene(30, seed=2, dtype=torch.float64, sh_degree=3)
-    cams = orbit_cameras(1, 16, 16, dtype=torch.float64)
-    for degree in range(4):
-        low = g.at_sh_degree(degree)
-        assert low.sh_degree == degree
-        assert torch.equal(render(low, cams).rgb, render(g, cams, sh_degree=degree).rgb)
-    with pytest.raises(ValueError, match=r"sh degree 4 outside 0..3 \(the stored degree\)"):
-        g.at_sh_degree(4)

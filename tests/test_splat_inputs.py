@@ -85,3 +85,17 @@ def test_bad_background_and_backend():
         render(good(), orbit_cameras(1, 8, 8), background=torch.zeros(4))
     with pytest.raises(ValueError, match="backend"):
         render(good(), orbit_cameras(1, 8, 8), settings=RenderSettings(backend="cuda"))
+
+
+def test_at_sh_degree_renders_as_the_full_model_at_that_degree():
+    import torch
+    from pipeline.splat import render
+    from pipeline.splat.scenes import orbit_cameras, random_scene
+    g = random_scene(30, seed=2, dtype=torch.float64, sh_degree=3)
+    cams = orbit_cameras(1, 16, 16, dtype=torch.float64)
+    for degree in range(4):
+        low = g.at_sh_degree(degree)
+        assert low.sh_degree == degree
+        assert torch.equal(render(low, cams).rgb, render(g, cams, sh_degree=degree).rgb)
+    with pytest.raises(ValueError, match=r"sh degree 4 outside 0..3 \(the stored degree\)"):
+        g.at_sh_degree(4)

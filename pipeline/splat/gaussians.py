@@ -143,21 +143,6 @@ class Gaussians:
         return Gaussians(points.clone(), torch.log(scale_t)[:, None].repeat(1, 3), quats, logit,
                          sh0.clone(), shn)
 
-    @staticmethod
-    def random_in_box(n: int, low: Tensor, high: Tensor, sh_degree: int = 3,
-                      generator: torch.Generator | None = None, scale: float | None = None,
-                      opacity: float = 0.1) -> "Gaussians":
-        """``n`` Gaussians uniform in the box [low, high] ([3] each), random colours."""
-        if n <= 0:
-            raise ValueError(f"n must be positive, got {n}")
-        dtype, device = low.dtype, low.device
-        u = torch.rand(n, 3, generator=generator, dtype=dtype, device=device)
-        points = low + u * (high - low)
-        colors = torch.rand(n, 3, generator=generator, dtype=dtype, device=device)
-        if scale is None:  # spacing of n points in the box
-            scale = float(((high - low).prod() / n) ** (1 / 3)) * 0.5
-        return Gaussians.from_points(points, colors, sh_degree, scale, opacity)
-
 
 @torch.no_grad()
 def all_finite(tensors: list[Tensor]) -> bool:
