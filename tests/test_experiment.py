@@ -9,6 +9,7 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
@@ -248,25 +249,84 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base, monk
     assert run_sweep(cfg).skipped == 4
 
 
+def start_mlflow_server(folder: Path, port: int) -> subprocess.Popen:
+    """A real ``mlflow server`` on a SQLite store in ``folder``, up and answering /health."""
+    server = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
+         "--backend-store-uri", f"sqlite:///{folder / 'server.db'}",
+         "--default-artifact-root", str(folder / "server-artifacts"), "--workers", "1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "MLFLOW_ENABLE_ARTIFACTS_PROXY": "false"})
+    deadline = time.time() + 120
+    while True:
+        try:
+            if urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=2).status == 200:
+                return server
+        except OSError:
+            if time.time() > deadline or server.poll() is not None:
+                server.kill()
+                raise RuntimeError("mlflow server did not come up") from None
+            time.sleep(0.5)
+
+
+def stop(server: subprocess.Popen) -> None:
+    server.terminate()
+    server.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_a_tracking_server_that_goes_away_loses_nothing_and_a_sync_replays_it(base, tmp_path, capsys):
+    """The server stops after the first job is tracked: the sweep goes on, records keep every
+    result, the launch names the untracked runs; with the server back, tracking_sync=true replays
+    them and MLflow then has every job FINISHED."""
+    import pipeline.experiment.tracking as tracking_module
+    port = free_port()
+    uri = f"http://127.0.0.1:{port}"
+    out = base / "server_down"
+    overrides = ["experiment=debug", *TINY, "method=[random,coverage]", "seeds=[0,1]", "executor=local",
+                 "tracking=mlflow", f"tracking.uri={uri}", f"output_dir={out}"]
+    server = start_mlflow_server(tmp_path, port)
+    real_log_job = tracking_module.MlflowTracker.log_job
+    calls = []
+
+    def log_then_stop_the_server(self, job, outcome):
+        calls.append(job["config_hash"])
+        run_id = real_log_job(self, job, outcome)
+        if len(calls) == 1:
+            stop(server)  # the server goes away after the first tracked job
+        return run_id
+    try:
+        tracking_module.MlflowTracker.log_job = log_then_stop_the_server
+        summary = run_sweep(composed(overrides))
+    finally:
+        tracking_module.MlflowTracker.log_job = real_log_job
+        stop(server)
+    assert summary.finished == 4 and summary.failed == 0 and len(summary.untracked) == 3
+    assert "3 finished job(s) could not be tracked" in capsys.readouterr().out
+    frame = RecordsFile(out).frame.query("kind == 'final'")
+    assert len(frame) == 4 and set(frame["status"]) == {"FINISHED"}
+    server = start_mlflow_server(tmp_path, port)  # back, on the same store
+    try:
+        from pipeline.experiment.sweep import sync_tracking
+        result = sync_tracking(composed([*overrides, "tracking_sync=true"]))
+        assert sorted(result["synced"]) == sorted(summary.untracked) and result["unknown"] == []
+        runs = records_from_mlflow(uri, "debug").query("kind == 'final'")
+        assert sorted(runs["config_hash"]) == sorted(frame["config_hash"])
+        assert set(runs["status"]) == {"FINISHED"}
+        mine = RecordsFile(out).frame.query("kind == 'final'").set_index("config_hash")["psnr"].sort_index()
+        theirs = runs.set_index("config_hash")["psnr"].sort_index()
+        assert np.allclose(mine.to_numpy(dtype=float), theirs.to_numpy(dtype=float))
+        assert RecordsFile(out).frame["run_id"].notna().all()  # the records now name the runs
+        assert sync_tracking(composed([*overrides, "tracking_sync=true"]))["synced"] == []  # idempotent
+    finally:
+        stop(server)
+
+
 @pytest.mark.slow
 def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):
     port = free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
-         "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
-         "--default-artifact-root", str(tmp_path / "server-artifacts"), "--workers", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "MLFLOW_ENABLE_ARTIFACTS_PROXY": "false"})
+    server = start_mlflow_server(tmp_path, port)
     uri = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.time() + 120
-        while True:
-            try:
-                if urllib.request.urlopen(f"{uri}/health", timeout=2).status == 200:
-                    break
-            except OSError:
-                if time.time() > deadline or server.poll() is not None:
-                    raise RuntimeError("mlflow server did not come up") from None
-                time.sleep(0.5)
         summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local",
                                       "tracking=mlflow", f"tracking.uri={uri}", f"output_dir={base / 'server'}"]))
         assert summary.finished == 1 and summary.tracking_uri == uri
@@ -274,8 +334,7 @@ def test_a_real_mlflow_server_receives_a_run_over_http(base, tmp_path):
         final = frame[frame["kind"] == "final"]
         assert len(final) == 1 and final["method"].iloc[0] == "random" and final["psnr"].iloc[0] > 5
     finally:
-        server.terminate()
-        server.wait(timeout=30)
+        stop(server)
 
 
 def test_code_version_names_the_commit_and_uncommitted_changes(tmp_path):

@@ -3,6 +3,7 @@
     pipeline-run experiment=demo
     pipeline-run experiment=table1_global data_root=/data splat=cpu executor.address=auto
     pipeline-run experiment=science plan=true      # the job table and an estimate; starts nothing
+    pipeline-run experiment=demo tracking_sync=true  # replay runs a down tracking server missed
 
 The exit status is the number of failed jobs (capped at 100); 0 when every job finished; 2 on a
 config error (nothing started); 130 after Ctrl-C (SIGINT), 143 after SIGTERM: running jobs are
@@ -22,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.plan import plan_jobs, plan_text, slots
-from pipeline.experiment.sweep import run_sweep
+from pipeline.experiment.sweep import run_sweep, sync_tracking
 
 CONF_DIR = Path(os.environ.get("GOPRE_CONF", Path(__file__).resolve().parents[2] / "conf"))
 
@@ -54,6 +55,13 @@ def main(cfg: DictConfig) -> None:
             sys.exit(2)
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
         print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs)))
+        return
+    if cfg.get("tracking_sync"):
+        try:
+            sync_tracking(cfg)
+        except ConfigError as err:
+            print(f"pipeline-run: config error: {err}", file=sys.stderr)
+            sys.exit(2)
         return
     install_stop_handlers()  # Ctrl-C / SIGTERM: a clean stop with exit status 128 + signal
     try:

@@ -40,6 +40,7 @@ class SweepSummary:
     tracking_uri: str | None
     interrupted: list[str] = field(default_factory=list)  # config hashes a stop signal cut short
     stopped_by: str | None = None
+    untracked: list[str] = field(default_factory=list)  # finished jobs MLflow did not receive
 
 
 class Progress:
@@ -218,7 +219,7 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     warn_stale(str(cfg.name), records, {j["config_hash"] for j in jobs} & done, output_dir)
     (output_dir / "jobs.json").write_text(json.dumps(jobs, indent=1))
     executor = make_executor(resolved["executor"])
-    failed = 0
+    failed, untracked = 0, []
     if todo:
         progress = Progress(str(cfg.name), len(todo), 1)
 
@@ -232,8 +233,10 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             try:
                 run_id = tracker.log_job(job, outcome)
             except Exception as err:  # tracking trouble must not lose the job's records
-                print(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: {err}", flush=True)
+                print(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: "
+                      f"{str(err).splitlines()[0][:300]}", flush=True)
                 run_id = None
+                untracked.append(job["config_hash"])
             save_artifacts(output_dir, job, outcome)
             records.add(job_rows(job, outcome, run_id))
             progress.slots = getattr(executor, "slots", 1)
@@ -270,7 +273,51 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
                   f"their last round checkpoint)", flush=True)
             raise
     summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
-                           len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri)
-    tracker.end(asdict(summary))
+                           len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri,
+                           untracked=untracked)
+    try:
+        tracker.end(asdict(summary))
+    except Exception as err:
+        print(f"[{cfg.name}] warning: could not close the sweep's MLflow run: {str(err).splitlines()[0][:300]}",
+              flush=True)
+    if untracked:
+        print(f"[{cfg.name}] {len(untracked)} finished job(s) could not be tracked ({', '.join(untracked)}); "
+              f"their results are in records.parquet and jobs/<hash>/: once the tracking server is back, "
+              f"relaunch the same command with tracking_sync=true", flush=True)
     (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
     return summary
+
+
+def sync_tracking(cfg: DictConfig) -> dict:
+    """Replay into MLflow every finished job of the records that the tracking store does not have
+    as FINISHED (a tracking server that was down), from records.parquet and jobs/<hash>/artifacts.
+    Runs no job. Returns counts."""
+    jobs = {j["config_hash"]: j for j in expand_jobs(cfg)}
+    output_dir = Path(str(cfg.output_dir))
+    records = RecordsFile(output_dir)
+    finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
+    have = tracker.finished_hashes()
+    missing = [] if finals is None else [h for h in finals["config_hash"] if h not in have]
+    synced, unknown = [], []
+    for config_hash in missing:
+        job, folder = jobs.get(config_hash), output_dir / "jobs" / config_hash / "artifacts"
+        if job is None or not (folder / "result.json").exists():
+            unknown.append(config_hash)
+            continue
+        row = finals[finals["config_hash"] == config_hash].iloc[0]
+        artifacts = {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+                     if p.is_file() and p.name != "result.json"}
+        outcome = {"status": "FINISHED", "result": json.loads((folder / "result.json").read_text()),
+                   "artifacts": artifacts, "attempts": row.get("attempts"),
+                   "seconds": row.get("wall_seconds")}
+        run_id = tracker.log_job(job, outcome)
+        records.add([{**r, "run_id": run_id} for r in
+                      records.frame[records.frame["config_hash"] == config_hash].to_dict("records")])
+        synced.append(config_hash)
+    print(f"[{cfg.name}] tracking sync: {len(synced)} run(s) replayed into {tracker.uri}, "
+          f"{len(have & set(jobs))} already there"
+          + (f", {len(unknown)} not replayable (not in this sweep's config, or no jobs/<hash>/artifacts/result.json): "
+             f"{', '.join(unknown)}" if unknown else ""), flush=True)
+    return {"synced": synced, "unknown": unknown}

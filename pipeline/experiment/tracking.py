@@ -11,6 +11,7 @@ message (``log_round``, while the job runs) and is completed by ``log_job`` when
 from __future__ import annotations
 
 import math
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -70,6 +71,8 @@ class NoTracker:
 
 
 REACH_TIMEOUT_S = 5.0
+HTTP_LIMITS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
+               "MLFLOW_HTTP_REQUEST_TIMEOUT": "30"}  # overridable from the environment
 
 
 def check_reachable(uri: str, timeout: float = REACH_TIMEOUT_S) -> None:
@@ -98,6 +101,10 @@ class MlflowTracker:
 
         if uri:
             check_reachable(uri)
+            # a server that goes away mid-sweep must cost seconds per call, not MLflow's default
+            # minutes of retries: the records keep everything and tracking_sync=true replays it
+            for key, value in HTTP_LIMITS.items():
+                os.environ.setdefault(key, value)
 
         output_dir = Path(output_dir).resolve()
         output_dir.mkdir(parents=True, exist_ok=True)
