@@ -130,12 +130,7 @@ def test_predictive_variance_map_matches_dense_jacobian():
 
 
 def test_predictive_entropy_parameter_form_equals_output_form_for_diagonal_fisher():
-    from pipeline.fisher.posterior import predictive_entropy, trace_score
-    sx, probes = torch.tensor([[0.3, 0.2, 0.9]], dtype=F64), torch.tensor([[1.0, 2.0, 0.5], [0.1, 0.0, 3.0]], dtype=F64)
-    assert trace_score(sx, f).item() == pytest.approx((sx * f).sum().item(), rel=1e-14)
-    assert gopre_score(sx, f).item() == pytest.approx(torch.log1p(sx * f).sum().item(), rel=1e-14)
-    assert monte_carlo_score(sx, probes).item() == pytest.approx(
-        torch.log1p(sx * probes).sum(-1).mean().item(), rel=1e-14)
+    from pipeline.fisher.posterior import predictive_entropy
     gen = torch.Generator().manual_seed(2)
     s, f = torch.rand(7, generator=gen, dtype=F64), torch.rand(7, generator=gen, dtype=F64)
     J = torch.diag(f.sqrt())  # a view whose J^T J is exactly diag(f), 7 outputs
