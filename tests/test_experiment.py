@@ -412,3 +412,28 @@ def test_a_second_launch_on_a_held_output_dir_is_refused(base):
         with pytest.raises(ConfigError, match=f"output_dir {out} is held by a running sweep"):
             run_sweep(composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]"]))
         assert not (out / "jobs.json").exists()
+
+
+def test_a_relaunch_after_a_killed_driver_closes_its_runs_left_running(base):
+    """A SIGKILLed driver leaves its lock and its MLflow runs RUNNING: the relaunch takes the stale
+    lock over, marks those runs (of this output folder only) KILLED, and finishes the sweep."""
+    import json as json_module
+
+    from mlflow import MlflowClient
+
+    from pipeline.experiment.lock import LOCK_NAME
+    from pipeline.experiment.tracking import MlflowTracker
+    out = base / "killed_driver"
+    cfg = composed(["experiment=debug", *TINY, "method=[random]", "tracking=mlflow", f"output_dir={out}"])
+    tracker = MlflowTracker(None, out, "debug")  # what the killed driver had opened
+    tracker.start({}, 1)
+    child = tracker._child_run(expand_jobs(cfg)[0])
+    other = MlflowClient(tracker.uri).create_run(tracker.experiment_id, tags={"output_dir": "/elsewhere"})
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()  # a pid that no longer runs
+    (out / LOCK_NAME).write_text(json_module.dumps({"host": os.uname().nodename, "pid": proc.pid, "since": "x"}))
+    summary = run_sweep(cfg)
+    assert summary.finished == 1
+    client = MlflowClient(tracker.uri)
+    assert client.get_run(tracker.parent).info.status == "KILLED" and client.get_run(child).info.status == "KILLED"
+    assert client.get_run(other.info.run_id).info.status == "RUNNING"  # another folder's run

@@ -200,18 +200,24 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
         print(f"[{cfg.name}] note: took over a stale lock of a sweep that no longer runs "
               f"(pid {lock.stale.get('pid')}, since {lock.stale.get('since')})", flush=True)
     try:
-        return _run_sweep(cfg, jobs, output_dir, start)
+        return _run_sweep(cfg, jobs, output_dir, start, stale_driver=lock.stale is not None)
     finally:
         lock.release()
 
 
-def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float) -> SweepSummary:
+def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float,
+               stale_driver: bool = False) -> SweepSummary:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     (output_dir / "sweep_config.json").write_text(json.dumps(resolved, indent=1, default=str))
     records = RecordsFile(output_dir)
     recorded = records.finished_hashes()
     scenes = validate_sweep([j for j in jobs if j["config_hash"] not in recorded])
     tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
+    if stale_driver:  # the last driver here was killed: its open runs will never be closed
+        closed = tracker.close_stale_runs()
+        if closed:
+            print(f"[{cfg.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
+                  f"marked KILLED", flush=True)
     done = recorded | tracker.finished_hashes()
     todo = execution_order([j for j in jobs if j["config_hash"] not in done])
     print(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "

@@ -69,6 +69,9 @@ class NoTracker:
     def interrupt(self, summary: dict) -> None:
         pass
 
+    def close_stale_runs(self) -> list[str]:
+        return []
+
 
 REACH_TIMEOUT_S = 5.0
 HTTP_LIMITS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
@@ -108,6 +111,7 @@ class MlflowTracker:
 
         output_dir = Path(output_dir).resolve()
         output_dir.mkdir(parents=True, exist_ok=True)
+        self.output_dir = str(output_dir)  # tagged on every run: whose sweep a run belongs to
         self.uri = uri or f"sqlite:///{output_dir / 'mlflow.db'}"
         self.client = MlflowClient(tracking_uri=self.uri)
         found = self.client.get_experiment_by_name(experiment)
@@ -132,7 +136,7 @@ class MlflowTracker:
 
     def start(self, sweep_config: dict, jobs: int) -> None:
         run = self.client.create_run(self.experiment_id, run_name=f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}",
-                                     tags={"kind": "sweep", "jobs": str(jobs),
+                                     tags={"kind": "sweep", "jobs": str(jobs), "output_dir": self.output_dir,
                                            "code_version": code_version()})
         self.parent = run.info.run_id
         self._log_params(self.parent, flatten(sweep_config))
@@ -156,7 +160,8 @@ class MlflowTracker:
     def _child_run(self, job: dict) -> str:
         """A new child run for ``job``, with its tags and params."""
         tags = {k: str(job.get(k)) for k in TAGS}
-        tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or ""})
+        tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or "",
+                     "output_dir": self.output_dir})
         run = self.client.create_run(self.experiment_id, run_name=f"{job['method']} {job['scene']} s{job['seed']}",
                                      tags=tags)
         self._log_params(run.info.run_id, job_params(job))
@@ -218,6 +223,21 @@ class MlflowTracker:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_bytes(data)
             self.client.log_artifacts(run_id, str(folder))
+
+    def close_stale_runs(self) -> list[str]:
+        """Runs of this output folder left RUNNING by a driver that was killed (its lock was
+        stale): they end KILLED. Runs of other folders on the same server are not touched."""
+        stale, token = [], None
+        while True:
+            page = self.client.search_runs([self.experiment_id], "attributes.status = 'RUNNING'",
+                                           max_results=1000, page_token=token)
+            stale += [r.info.run_id for r in page if r.data.tags.get("output_dir") == self.output_dir]
+            token = page.token
+            if not token:
+                break
+        for run_id in stale:
+            self.client.set_terminated(run_id, "KILLED")
+        return stale
 
     def interrupt(self, summary: dict) -> None:
         """A stop signal: the child runs of interrupted jobs and the parent run end KILLED."""
