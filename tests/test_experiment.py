@@ -437,3 +437,30 @@ def test_a_relaunch_after_a_killed_driver_closes_its_runs_left_running(base):
     client = MlflowClient(tracker.uri)
     assert client.get_run(tracker.parent).info.status == "KILLED" and client.get_run(child).info.status == "KILLED"
     assert client.get_run(other.info.run_id).info.status == "RUNNING"  # another folder's run
+
+
+@pytest.mark.slow
+def test_two_sweeps_at_once_on_one_tracking_server_land_all_their_runs(tmp_path):
+    """Two launches of the same preset with different output_dirs, started together against one
+    real server (the experiment is created by whichever comes first): every job of both lands."""
+    port = free_port()
+    server = start_mlflow_server(tmp_path, port)
+    uri = f"http://127.0.0.1:{port}"
+    try:
+        procs = [subprocess.Popen([str(Path(sys.executable).parent / "pipeline-run"), "experiment=debug", *TINY,
+                                   "method=[random,coverage]", "executor=local", "tracking=mlflow",
+                                   f"tracking.uri={uri}", f"output_dir={tmp_path / name}"],
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                 for name in ("a", "b")]
+        outs = [p.communicate(timeout=600)[0] for p in procs]
+        assert [p.returncode for p in procs] == [0, 0], outs
+        runs = records_from_mlflow(uri, "debug").query("kind == 'final'")
+        assert len(runs) == 4 and set(runs["status"]) == {"FINISHED"}  # 2 jobs x 2 sweeps
+        from mlflow import MlflowClient
+        client = MlflowClient(uri)
+        exp = client.get_experiment_by_name("debug")
+        children = client.search_runs([exp.experiment_id], "tags.config_hash != ''")
+        assert len(children) == 4 and {r.info.status for r in children} == {"FINISHED"}
+        assert {r.data.tags["output_dir"] for r in children} == {str((tmp_path / n).resolve()) for n in "ab"}
+    finally:
+        stop(server)

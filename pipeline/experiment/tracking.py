@@ -114,15 +114,23 @@ class MlflowTracker:
         self.output_dir = str(output_dir)  # tagged on every run: whose sweep a run belongs to
         self.uri = uri or f"sqlite:///{output_dir / 'mlflow.db'}"
         self.client = MlflowClient(tracking_uri=self.uri)
-        found = self.client.get_experiment_by_name(experiment)
-        if found is None:
-            location = None if uri else (output_dir / "mlartifacts").as_uri()
-            self.experiment_id = self.client.create_experiment(experiment, artifact_location=location)
-        else:
-            self.experiment_id = found.experiment_id
+        self.experiment_id = self._experiment(experiment, None if uri else (output_dir / "mlartifacts").as_uri())
         self.parent: str | None = None
         # config hash -> (child run opened by a round message, steps (views) it has logged)
         self.live: dict[str, tuple[str, set[int]]] = {}
+
+    def _experiment(self, name: str, location: str | None) -> str:
+        """The experiment's id, created if needed; two sweeps creating it at once both get it."""
+        found = self.client.get_experiment_by_name(name)
+        if found is not None:
+            return found.experiment_id
+        try:
+            return self.client.create_experiment(name, artifact_location=location)
+        except Exception:  # created meanwhile by a concurrent sweep on the same server
+            found = self.client.get_experiment_by_name(name)
+            if found is None:
+                raise
+            return found.experiment_id
 
     def finished_hashes(self) -> set[str]:
         hashes, token = set(), None
