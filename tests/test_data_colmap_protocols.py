@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
+from pipeline.data.blender import read_blender
 from pipeline.data.cli import main as data_cli
 from pipeline.data.colmap import observations, read_colmap
 from pipeline.data.images import DataError
@@ -221,3 +222,48 @@ def test_every_remaining_colmap_error_names_the_path(tmp_path):
         read_colmap(folderless)
     with pytest.raises(DataError, match=r"a.png: aspect ratio 40x30 differs from the model's camera 80x80"):
         read_colmap(write_text_model(tmp_path / "a", "1 PINHOLE 80 80 50 50 40 40"))
+
+
+def test_inspect_deep_finds_a_corrupt_or_wrongly_sized_image_by_name(tmp_path, capsys, generated):
+    import shutil
+
+    from PIL import Image
+    scene = tmp_path / "scene"
+    shutil.copytree(generated.root, scene)
+    pngs = sorted((scene / "test").glob("*.png"))
+    assert data_cli(["inspect", str(scene), "--deep"]) == 0
+    assert json.loads(capsys.readouterr().out)["images_checked"] == 100
+    Image.new("RGB", (9, 9)).save(pngs[-1])  # the wrong size, last of its split
+    assert data_cli(["inspect", str(scene)]) == 0  # the quick look decodes one image only
+    capsys.readouterr()
+    assert data_cli(["inspect", str(scene), "--deep"]) == 1
+    assert f"{pngs[-1]}: image is 9x9" in capsys.readouterr().err
+    pngs[-1].write_bytes(b"not a png")
+    assert data_cli(["inspect", str(scene), "--deep"]) == 1
+    assert f"{pngs[-1]}: cannot read image" in capsys.readouterr().err
+
+
+def test_a_nan_pose_names_the_file_and_the_frame(tmp_path, generated):
+    import shutil
+    scene = tmp_path / "scene"
+    shutil.copytree(generated.root, scene)
+    path = scene / "transforms_train.json"
+    data = json.loads(path.read_text())
+    data["frames"][3]["transform_matrix"][1][2] = float("nan")
+    path.write_text(json.dumps(data))  # json writes NaN, as Python and Blender exporters do
+    with pytest.raises(DataError, match=rf"transforms_train.json: frame 3 \({data['frames'][3]['file_path']}\): "
+                                        r"transform_matrix contains NaN or inf$"):
+        read_blender(scene)
+
+
+def test_a_truncated_cameras_bin_is_named(tmp_path):
+    source = shared_scene("colmap", "bonsai")
+    scene = tmp_path / "bonsai"
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "images").symlink_to(source / "images")
+    for name in ("images.bin", "points3D.bin"):
+        (scene / "sparse" / "0" / name).symlink_to(source / "sparse" / "0" / name)
+    whole = (source / "sparse" / "0" / "cameras.bin").read_bytes()
+    (scene / "sparse" / "0" / "cameras.bin").write_bytes(whole[:-7])
+    with pytest.raises(DataError, match=rf"cameras.bin: truncated COLMAP camera file \({len(whole) - 7} bytes"):
+        read_colmap(scene)

@@ -82,6 +82,11 @@ def read_blender(root: str | Path, width: int | None = None, background=(1.0, 1.
             raise DataError(f"{json_path}: a transform_matrix is not a 4x4 list of numbers") from None
         if c2w.shape[1:] != (4, 4):
             raise DataError(f"{json_path}: transform_matrix must be 4x4, got {list(c2w.shape[1:])}")
+        bad = (~torch.isfinite(c2w).all(dim=2).all(dim=1)).nonzero()[:, 0].tolist()
+        if bad:
+            frame = data["frames"][bad[0]]
+            raise DataError(f"{json_path}: frame {bad[0]} ({frame['file_path']}): transform_matrix contains "
+                            f"NaN or inf" + (f" ({len(bad)} frames in all)" if len(bad) > 1 else ""))
         k = torch.tensor([[focal, 0, w / 2], [0, focal, h / 2], [0, 0, 1]], dtype=torch.float64)
         cams = Cameras(c2w_opengl_to_viewmat(c2w).float(), k.expand(len(paths), 3, 3).float(), w, h)
         names = [Path(f["file_path"]).name for f in data["frames"]]

@@ -1,6 +1,7 @@
 """``pipeline-data``: inspect a dataset folder, or generate the default scene.
 
-    pipeline-data inspect PATH            JSON summary; exits 1 with a message naming the file on bad data
+    pipeline-data inspect PATH [--deep]   JSON summary; exits 1 with a message naming the file on bad data
+                                          (--deep: decode every image, as a sweep will)
     pipeline-data generate OUT [--seed S] [--size W]
 """
 
@@ -15,7 +16,7 @@ from pipeline.data.images import DataError
 from pipeline.data.load import load_scene
 
 
-def summary(path: Path) -> dict:
+def summary(path: Path, deep: bool = False) -> dict:
     scene = load_scene(path)
     first = next(iter(scene.splits.values()))
     out = {"path": str(path), "format": scene.format, "name": scene.name,
@@ -26,6 +27,11 @@ def summary(path: Path) -> dict:
     if scene.format == "colmap":
         out["model_image_size"] = scene.info.get("model_size")
     first.images[0]  # decode one image: a broken file fails here, naming it
+    if deep:  # every image of every split: unreadable files and wrong sizes fail here, named
+        for split in scene.splits.values():
+            for i in range(len(split.images)):
+                split.images[i]
+        out["images_checked"] = sum(len(s.images) for s in scene.splits.values())
     return out
 
 
@@ -35,6 +41,7 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     inspect = sub.add_parser("inspect", help="print a JSON summary of a scene folder")
     inspect.add_argument("path", type=Path)
+    inspect.add_argument("--deep", action="store_true", help="decode every image (slower)")
     gen = sub.add_parser("generate", help="write the generated default scene (Blender layout)")
     gen.add_argument("out", type=Path)
     gen.add_argument("--seed", type=int, default=0)
@@ -42,7 +49,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.command == "inspect":
-            print(json.dumps(summary(args.path)))
+            print(json.dumps(summary(args.path, args.deep)))
         else:
             from pipeline.data.synthetic import generate
             out = generate(args.out, seed=args.seed, size=args.size)

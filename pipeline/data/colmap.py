@@ -21,6 +21,30 @@ from pipeline.data.scene import Scene, Split
 SUPPORTED = {"PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "OPENCV"}
 
 
+# COLMAP camera model id -> number of parameters (src/colmap/sensor/models.h)
+MODEL_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12}
+
+
+def check_cameras_bin(path: Path) -> None:
+    """The binary camera file is complete: its declared cameras, each (id, model, width, height,
+    parameters), fill it exactly. pycolmap reads a truncated file without an error."""
+    import struct
+    data = path.read_bytes()
+    try:
+        (count,) = struct.unpack_from("<Q", data, 0)
+        offset = 8
+        for _ in range(count):
+            _, model, width, height = struct.unpack_from("<iiQQ", data, offset)
+            if model not in MODEL_PARAMS or not (0 < width < 1 << 20 and 0 < height < 1 << 20):
+                raise DataError(f"{path}: malformed COLMAP camera file (camera model {model}, "
+                                f"size {width}x{height} at byte {offset})")
+            offset += 24 + 8 * MODEL_PARAMS[model]
+    except struct.error:
+        raise DataError(f"{path}: truncated COLMAP camera file ({len(data)} bytes)") from None
+    if offset > len(data):
+        raise DataError(f"{path}: truncated COLMAP camera file ({len(data)} bytes, {offset} needed)")
+
+
 def _sparse_dir(root: Path) -> Path:
     for candidate in (root / "sparse" / "0", root / "sparse"):
         if (candidate / "cameras.bin").exists() or (candidate / "cameras.txt").exists():
@@ -62,6 +86,8 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
     if not root.is_dir():
         raise DataError(f"{root}: scene folder does not exist")
     sparse = _sparse_dir(root)
+    if (sparse / "cameras.bin").exists():
+        check_cameras_bin(sparse / "cameras.bin")
     try:
         rec = pycolmap.Reconstruction(str(sparse))
     except Exception as err:  # pycolmap raises plain RuntimeError/ValueError on bad files
