@@ -49,6 +49,31 @@ def drain(lines) -> str:
     return "".join(out)
 
 
+def cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def descendants(root: int) -> list[int]:
+    """Every process below ``root`` (Linux /proc): this sweep's Ray processes, no one else's."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    out, todo = [], [root]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            out.append(child)
+            todo.append(child)
+    return out
+
+
 def run_statuses(out: Path) -> dict[str, str]:
     from mlflow import MlflowClient
     client = MlflowClient(f"sqlite:///{out.resolve() / 'mlflow.db'}")
@@ -92,3 +117,21 @@ def test_a_stopped_driver_exits_cleanly_and_a_relaunch_resumes(tmp_path, sig):
     ours = frame[cols].sort_values("config_hash").reset_index(drop=True)
     theirs = RecordsFile(ref).frame.query("kind == 'final'")[cols].sort_values("config_hash").reset_index(drop=True)
     assert ours.astype(str).equals(theirs.astype(str))
+
+
+def test_a_killed_ray_worker_is_retried_from_its_checkpoint(tmp_path):
+    """SIGKILL the worker process running a job after its first round: Ray reruns the task, the
+    job resumes from its round checkpoint (not from round 0), and the sweep finishes."""
+    import os
+    out = tmp_path / "sweep"
+    proc, lines = start(out, "method=[random]", "seeds=[0]")
+    wait_for(lines, "round 1/", timeout=300)
+    workers = [pid for pid in descendants(proc.pid) if "_remote_run" in cmdline(pid)]
+    assert workers, "no Ray worker running the job"
+    for pid in workers:
+        os.kill(pid, signal.SIGKILL)
+    assert proc.wait(timeout=600) == 0, drain(lines)
+    frame = RecordsFile(out).frame.query("kind == 'final'")
+    assert len(frame) == 1 and frame["status"].iloc[0] == "FINISHED"
+    log = next((out / "jobs").glob("*/log.txt")).read_text()
+    assert "resuming from the checkpoint after" in log and log.count("round 0:") == 1

@@ -81,6 +81,10 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
         if report is not None:
             report(round_message(rec, rounds))
+    saved = folder / "checkpoint" / "episode.pt"
+    if saved.exists():  # a retried, interrupted or relaunched job continues where it stopped
+        done = len(torch.load(saved, weights_only=False, map_location="cpu").get("records", []))
+        _log(folder, f"resuming from the checkpoint after {done} round(s)")
     result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round,
                          device=job["execution"]["device"])
     if result.final["degraded"]:
