@@ -126,7 +126,7 @@ def test_a_killed_ray_worker_is_retried_from_its_checkpoint(tmp_path):
     out = tmp_path / "sweep"
     proc, lines = start(out, "method=[random]", "seeds=[0]")
     wait_for(lines, "round 1/", timeout=300)
-    workers = [pid for pid in descendants(proc.pid) if "_remote_run" in cmdline(pid)]
+    workers = [pid for pid in descendants(proc.pid) if cmdline(pid).startswith("ray::random:generated")]
     assert workers, "no Ray worker running the job"
     for pid in workers:
         os.kill(pid, signal.SIGKILL)
