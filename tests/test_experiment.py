@@ -2,6 +2,7 @@
 resume, retries and failures."""
 
 import glob
+import json
 import os
 import subprocess
 import sys
@@ -464,3 +465,19 @@ def test_two_sweeps_at_once_on_one_tracking_server_land_all_their_runs(tmp_path)
         assert {r.data.tags["output_dir"] for r in children} == {str((tmp_path / n).resolve()) for n in "ab"}
     finally:
         stop(server)
+
+
+def test_each_round_logs_renders_variance_maps_and_the_pick_as_mlflow_images(base):
+    from mlflow import MlflowClient
+    out = base / "round_images"
+    summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "tracking=mlflow",
+                                  "job.round_images=1", f"output_dir={out}"]))
+    assert summary.finished == 1
+    client = MlflowClient(summary.tracking_uri)
+    exp = client.get_experiment_by_name("debug")
+    (run,) = client.search_runs([exp.experiment_id], "tags.config_hash != ''")
+    names = [a.path for a in client.list_artifacts(run.info.run_id, "images")]
+    rounds = RecordsFile(out).frame.query("kind == 'round'").sort_values("num_views")
+    first_pick = json.loads(rounds["selected"].iloc[0])[0]  # picked with 2 views taken (a JSON list)
+    for key in ("render_test_", "variance_test_", f"picked_{first_pick:04d}"):
+        assert any(n.startswith(f"images/{key}") and "+step+2+" in n for n in names), (key, names)

@@ -261,10 +261,13 @@ class Episode:
 
 def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | None = None,
                 on_round: Callable[[RoundRecord], None] | None = None,
-                progress: bool = False, device: str | torch.device | None = None) -> EpisodeResult:
+                progress: bool = False, device: str | torch.device | None = None,
+                on_selection: Callable[["Episode", RoundRecord], None] | None = None) -> EpisodeResult:
     """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
     checkpointed), including the final one; it may raise to stop the episode. ``device``: where
-    the model and images live (default CPU); records are identical in form on every device."""
+    the model and images live (default CPU); records are identical in form on every device.
+    ``on_selection(episode, record)`` sees the episode after each pick, before the post-selection
+    policy changes the model (it must not change the episode)."""
     start = time.perf_counter()
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
     ep = Episode(scene, cfg, device, folder)
@@ -276,6 +279,8 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
         seconds = ep.train(cfg.epochs_per_view * len(ep.taken), progress)
         rec = ep.record(seconds)
         ep.select(rec)
+        if on_selection is not None:  # the model that made this round's pick (e.g. round images)
+            on_selection(ep, rec)
         ep.after_selection()
         ep.records.append(rec)
         _checkpoint(ep, folder, key, on_round, rec)

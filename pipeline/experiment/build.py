@@ -109,6 +109,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
         raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
     jobs = []
     output_dir = Path(str(cfg.output_dir))
+    tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
     for dname, dset in datasets.items():
         missing = sorted({"format", "root", "scenes"} - set(dset or {}))
         if missing:
@@ -134,6 +135,8 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
             job["config_hash"] = config_hash(job)
             job["execution"] = {"threads": int(job_cfg["threads"]), "device": str(job_cfg["device"]),
                                 "retries": int(job_cfg["retries"]),
+                                # images only go to MLflow: none to make without it
+                                "round_images": int(job_cfg.get("round_images") or 0) if tracked else 0,
                                 "job_dir": str(output_dir / "jobs" / job["config_hash"])}
             validate_job(job)
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)

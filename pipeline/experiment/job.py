@@ -27,6 +27,8 @@ from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.experiment.build import episode_config, uncertainty_config
+from pipeline.fisher.exact import predictive_variance_maps, view_fisher
+from pipeline.fisher.posterior import posterior_variance
 from pipeline.splat import ply, render
 
 
@@ -72,20 +74,53 @@ def round_message(rec: RoundRecord, rounds: int) -> dict:
             "seconds": round(rec.train_seconds + rec.selection_seconds, 2)}
 
 
+ROUND_IMAGE_LAMBDA = 1e-6  # the prior of the posterior behind the per-round variance maps
+
+
+def round_images(ep, rec, count: int) -> dict[str, bytes]:
+    """PNGs of the model that made this round's pick: the render and the per-pixel predictive
+    variance (sum over channels, S = 1 / (H_train + lambda) of the taken views) of ``count``
+    fixed test views, and the picked view's ground truth."""
+    g, bg = ep.trainer.rendered_gaussians, ep.background
+    views = ep.curve_ids[:count]
+    cams = ep.test.cameras[views]
+    with torch.no_grad():
+        renders = render(g, cams, bg).rgb.clamp(0, 1)
+    taken = ep.pool.cameras[[i for i in ep.taken if i not in set(rec.selected)]]
+    s = posterior_variance(view_fisher(g, taken, bg).sum(0), ROUND_IMAGE_LAMBDA)
+    maps = predictive_variance_maps(g, cams, s, bg).sum(-1)
+    out = {}
+    for i, view in enumerate(views):
+        out[f"render_test_{view:04d}"] = png_bytes(renders[i])
+        out[f"variance_test_{view:04d}"] = png_bytes(colormap(maps[i].float()))
+    for view in rec.selected:
+        out[f"picked_{view:04d}"] = png_bytes(ep.pool.images[view])
+    return out
+
+
 def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = episode_config(job)
     rounds = len(episode_plan(scene, cfg).round_views) + 1
+    pending_images: dict[int, dict[str, bytes]] = {}
+
+    def on_selection(ep, rec):
+        count = job["execution"].get("round_images", 0)
+        if count > 0 and report is not None:
+            pending_images[rec.round] = round_images(ep, rec, count)
 
     def on_round(rec):
         _log(folder, f"round {rec.round}: {rec.num_views} views, psnr {rec.test_psnr:.2f}, "
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
         if report is not None:
-            report(round_message(rec, rounds))
+            message = round_message(rec, rounds)
+            if rec.round in pending_images:
+                message["images"] = pending_images.pop(rec.round)
+            report(message)
     saved = folder / "checkpoint" / "episode.pt"
     if saved.exists():  # a retried, interrupted or relaunched job continues where it stopped
         done = len(torch.load(saved, weights_only=False, map_location="cpu").get("records", []))
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
-    result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round,
+    result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round, on_selection=on_selection,
                          device=job["execution"]["device"])
     if result.final["degraded"]:
         _log(folder, f"warning: final PSNR {result.final['curve_psnr_drop']:.2f} dB below the last "

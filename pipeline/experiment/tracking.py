@@ -182,6 +182,11 @@ class MlflowTracker:
         run_id, logged = self.live[job["config_hash"]]
         self._log_metrics(run_id, round_metrics(message))
         logged.add(message["num_views"])
+        for key, png in (message.get("images") or {}).items():  # MLflow's image series per step
+            import io
+
+            from PIL import Image
+            self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=message["num_views"])
 
     def log_job(self, job: dict, outcome: dict) -> str:
         """Complete the job's child run (the live one, else a new one) with its final state."""
