@@ -1,6 +1,7 @@
 """Reports from a fixture set of records: marks, mean +- std, missing cells, LaTeX, figures."""
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -159,3 +160,16 @@ def test_qualitative_grid_shows_the_ground_truth_once_then_a_column_per_method(t
     layout = qualitative_grid(renders, tmp_path / "grid.png")
     assert layout == {"columns": ["ground truth", "gopre", "random"], "rows": ["test_0001", "test_0002"]}
     assert (tmp_path / "grid.png").stat().st_size > 1000
+
+
+def test_curves_get_a_panel_per_scene_and_setting():
+    from pipeline.report.figures import psnr_vs_views
+    import tempfile
+    rows = [{**final_row(m, "blender", "lego", 0, p + (m == "gopre") + (5 if st.endswith("goal") else 0), 0.5,
+                         setting=st), "kind": "round", "num_views": n}
+            for m in ("gopre", "random") for st in ("protocol.kind=global", "protocol.kind=goal")
+            for n, p in ((2, 10.0), (3, 12.0))]
+    with tempfile.TemporaryDirectory() as tmp:
+        series = psnr_vs_views(pd.DataFrame(rows), Path(tmp) / "c.png")
+    assert set(series) == {"lego, protocol.kind=global", "lego, protocol.kind=goal"}
+    assert series["lego, protocol.kind=goal"]["gopre"] == ([2, 3], [16.0, 18.0])  # not mixed with global

@@ -16,22 +16,29 @@ from PIL import Image  # noqa: E402
 
 
 def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple[list, list]]]:
-    """One panel per scene, one line per method (mean over seeds) of PSNR against #views."""
-    scenes = list(dict.fromkeys(rounds["scene"]))
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.4), squeeze=False)
+    """One panel per scene and setting (sweep-axis values, e.g. the protocol), one line per method
+    (mean over seeds) of PSNR against #views; panels in rows of at most three."""
+    setting = rounds["setting"].fillna("") if "setting" in rounds else pd.Series("", index=rounds.index)
+    rounds = rounds.assign(panel=[f"{sc}, {st}" if st else sc for sc, st in zip(rounds["scene"], setting)])
+    panels = list(dict.fromkeys(rounds["panel"]))
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
     series: dict[str, dict[str, tuple[list, list]]] = {}
-    for ax, scene in zip(axes[0], scenes):
-        part = rounds[rounds["scene"] == scene]
-        series[scene] = {}
+    for ax, panel in zip(axes.flat, panels):
+        part = rounds[rounds["panel"] == panel]
+        series[panel] = {}
         for method, data in part.groupby("method", sort=False):
             curve = data.groupby("num_views")["psnr"].mean()
             x, y = curve.index.tolist(), curve.tolist()
-            series[scene][method] = (x, y)
+            series[panel][method] = (x, y)
             ax.plot(x, y, marker="o", ms=3, label=method)
-        ax.set_title(scene)
+        ax.set_title(panel, fontsize=9)
         ax.set_xlabel("number of views")
         ax.set_ylabel("test PSNR (dB)")
         ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
