@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline.data.scene import Scene
-from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
+from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers, restore_handlers
 from pipeline.experiment.job import run_with_retries
 
 OnDone = Callable[[dict, dict], None]
@@ -99,7 +99,7 @@ class RayExecutor:
     def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
         ray, started_here = self._start()
-        install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
+        previous = install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
         channel, pending = None, {}
         try:
             channel = RoundChannel(jobs, on_round) if on_round is not None else None
@@ -134,6 +134,7 @@ class RayExecutor:
                 channel.close()
             if started_here:
                 ray.shutdown()
+            restore_handlers(previous)  # the caller's handlers (the CLI's own, or a test runner's)
 
     @staticmethod
     def _cancel(ray, pending: dict) -> list[dict]:

@@ -50,12 +50,21 @@ def critical():
             raise SweepInterrupted(signum)
 
 
-def install_stop_handlers() -> None:
+def install_stop_handlers() -> dict:
     """(Re)install the handlers: Ray installs its own SIGTERM handler when it starts, so the
-    executor calls this again after ``ray.init``. Only the main thread can."""
+    executor calls this again after ``ray.init``. Only the main thread can. Returns the previous
+    handlers (``restore_handlers``)."""
+    previous = {}
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
-            signal.signal(sig, _raise)
+            previous[sig] = signal.signal(sig, _raise)
+    return previous
+
+
+def restore_handlers(previous: dict) -> None:
+    for sig, handler in previous.items():
+        if handler is not None:
+            signal.signal(sig, handler)
 
 
 def ignore_stop_signals() -> None:
