@@ -19,7 +19,8 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline.data.scene import Scene
-from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers, restore_handlers
+from pipeline.experiment.interrupt import (SweepInterrupted, current_handlers, install_stop_handlers,
+                                           restore_handlers)
 from pipeline.experiment.job import run_with_retries
 
 OnDone = Callable[[dict, dict], None]
@@ -98,8 +99,9 @@ class RayExecutor:
 
     def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
+        previous = current_handlers()  # restored when the sweep ends
         ray, started_here = self._start()
-        previous = install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
+        install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
         channel, pending = None, {}
         try:
             channel = RoundChannel(jobs, on_round) if on_round is not None else None

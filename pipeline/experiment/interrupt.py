@@ -61,7 +61,13 @@ def install_stop_handlers() -> dict:
     return previous
 
 
+def current_handlers() -> dict:
+    return {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+
+
 def restore_handlers(previous: dict) -> None:
+    if threading.current_thread() is not threading.main_thread():
+        return
     for sig, handler in previous.items():
         if handler is not None:
             signal.signal(sig, handler)
