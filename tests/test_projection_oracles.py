@@ -240,7 +240,7 @@ def test_from_points_builds_the_documented_initial_gaussians():
     # the DC term alone reproduces the colour: C0 * sh0 + 0.5
     assert torch.allclose(eval_sh(0, g.sh, torch.tensor([[0, 0, 1.0]] * 2, dtype=F64)) + 0.5, colors)
     assert g.shN.shape == (2, 8, 3) and g.shN.abs().max() == 0
-    with pytest.raises(ValueError, match="points: cannot build Gaussians from an empty point cloud"):
+    with pytest.raises(ValueError, match="^points: cannot build Gaussians from an empty point cloud$"):
         Gaussians.from_points(points[:0], colors[:0])
 
 
