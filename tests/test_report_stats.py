@@ -91,6 +91,9 @@ def test_report_cli_writes_paired_tables_against_the_chosen_reference(study, tmp
     assert "\\begin{tabular}" in (tmp_path / "out" / "table.tex").read_text()
     assert report_main([str(path), "--out", str(tmp_path / "o2"), "--reference", "fisherrf"]) == 0
     assert "paired differences against fisherrf" in (tmp_path / "o2" / "table.md").read_text()
+    assert report_main([str(path), "--out", str(tmp_path / "o4"), "--seeds", "0,1"]) == 0
+    line = next(x for x in (tmp_path / "o4" / "table.md").read_text().splitlines() if x.startswith("| fisherrf | 4 |"))
+    assert "4 pair(s): too few for a verdict" in line  # seed 2's pair left out
     capsys.readouterr()
     assert report_main([str(path), "--out", str(tmp_path / "o3"), "--reference", "nosuch"]) == 1
     assert "reference method 'nosuch' did not run" in capsys.readouterr().err

@@ -3,6 +3,7 @@
     pipeline-report outputs/demo                      # -> reports/demo/
     pipeline-report outputs/table1_global --out reports/table1
     pipeline-report outputs/science --reference fisherrf   # paired differences against fisherrf
+    pipeline-report outputs/science --seeds 0,1,2          # only complete seeds
     pipeline-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
 
 Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
@@ -24,6 +25,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="default: reports/<sweep name>")
     parser.add_argument("--mlflow-uri", default=None, help="read the runs from MLflow instead")
     parser.add_argument("--experiment", default=None, help="MLflow experiment (= sweep name)")
+    parser.add_argument("--seeds", default=None,
+                        help="only these seeds, e.g. 0,1,2 (a sweep stopped inside a later seed)")
     parser.add_argument("--reference", default=None,
                         help="method the paired comparisons are against (default: gopre when it ran)")
     args = parser.parse_args(argv)
@@ -37,6 +40,14 @@ def main(argv=None) -> int:
             parser.error("give a sweep folder, or --mlflow-uri and --experiment")
         else:
             frame, source = load_records(args.source), args.source
+        if args.seeds:
+            try:
+                seeds = {int(x) for x in args.seeds.split(",")}
+            except ValueError:
+                parser.error(f"--seeds: expected integers separated by commas, got {args.seeds!r}")
+            frame = frame[frame["seed"].isin(seeds)]
+            if frame.empty:
+                raise ValueError(f"no records for seeds {sorted(seeds)}")
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
         summary = make_report(source, out, frame, args.reference)
     except (FileNotFoundError, ValueError) as err:
