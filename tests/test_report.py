@@ -173,3 +173,24 @@ def test_curves_get_a_panel_per_scene_and_setting():
         series = psnr_vs_views(pd.DataFrame(rows), Path(tmp) / "c.png")
     assert set(series) == {"lego, protocol.kind=global", "lego, protocol.kind=goal"}
     assert series["lego, protocol.kind=goal"]["gopre"] == ([2, 3], [16.0, 18.0])  # not mixed with global
+
+
+def test_a_method_has_one_colour_in_every_panel(tmp_path):
+    """Methods appear in a different order per panel: the colours must still match the legend."""
+    import matplotlib.pyplot as plt
+
+    from pipeline.report import figures
+    rows = [{**final_row(m, "blender", sc, 0, 10.0 + i, 0.5), "kind": "round", "num_views": 2}
+            for sc, order in (("a", ("gopre", "random")), ("b", ("random", "gopre"))) for i, m in enumerate(order)]
+    seen = {}
+    real_plot = plt.Axes.plot
+
+    def spy(ax, *args, **kwargs):
+        seen.setdefault(kwargs["label"], set()).add(kwargs["color"])
+        return real_plot(ax, *args, **kwargs)
+    plt.Axes.plot = spy
+    try:
+        figures.psnr_vs_views(pd.DataFrame(rows), tmp_path / "c.png")
+    finally:
+        plt.Axes.plot = real_plot
+    assert all(len(c) == 1 for c in seen.values()) and seen["gopre"] != seen["random"]

@@ -25,21 +25,27 @@ def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple
     rows = -(-len(panels) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
     series: dict[str, dict[str, tuple[list, list]]] = {}
+    methods = list(dict.fromkeys(rounds["method"]))
+    colour = {m: f"C{i % 10}" for i, m in enumerate(methods)}  # one colour per method in every panel
     for ax, panel in zip(axes.flat, panels):
         part = rounds[rounds["panel"] == panel]
         series[panel] = {}
-        for method, data in part.groupby("method", sort=False):
+        for method in methods:
+            data = part[part["method"] == method]
+            if data.empty:
+                continue
             curve = data.groupby("num_views")["psnr"].mean()
             x, y = curve.index.tolist(), curve.tolist()
             series[panel][method] = (x, y)
-            ax.plot(x, y, marker="o", ms=3, label=method)
+            ax.plot(x, y, marker="o", ms=3, label=method, color=colour[method])
         ax.set_title(panel, fontsize=9)
         ax.set_xlabel("number of views")
         ax.set_ylabel("test PSNR (dB)")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
-    axes[0][0].legend(fontsize=8)
+    handles = [plt.Line2D([], [], color=colour[m], marker="o", ms=3, label=m) for m in methods]
+    axes[0][0].legend(handles=handles, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
