@@ -20,8 +20,8 @@ SWEEP = ["experiment=debug", "seeds=[0,1]", "splat.iterations=160", "dataset.gen
          "job.retries=0"]
 
 
-def start(out: Path, *extra) -> tuple[subprocess.Popen, "queue.Queue[str]"]:
-    proc = subprocess.Popen([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", "executor.num_cpus=2",
+def start(out: Path, *extra, cpus: int = 2) -> tuple[subprocess.Popen, "queue.Queue[str]"]:
+    proc = subprocess.Popen([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", f"executor.num_cpus={cpus}",
                              "tracking=mlflow", f"output_dir={out}", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: "queue.Queue[str]" = queue.Queue()
@@ -135,3 +135,25 @@ def test_a_killed_ray_worker_is_retried_from_its_checkpoint(tmp_path):
     assert len(frame) == 1 and frame["status"].iloc[0] == "FINISHED"
     log = next((out / "jobs").glob("*/log.txt")).read_text()
     assert "resuming from the checkpoint after" in log and log.count("round 0:") == 1
+
+
+def test_a_sigkilled_driver_loses_no_finished_job_and_redoes_none(tmp_path):
+    """SIGKILL (no handler runs): the relaunch takes the stale lock over, closes the runs the dead
+    driver left RUNNING, skips every job that had finished and completes the rest."""
+    out = tmp_path / "sweep"
+    proc, lines = start(out, cpus=1)  # one job at a time: some finish, one is cut
+    wait_for(lines, "FINISHED", timeout=400)  # at least one job is done
+    wait_for(lines, "round 1/", timeout=300)  # and the next one is between rounds
+    proc.kill()
+    proc.wait(timeout=60)
+    frame = RecordsFile(out).frame
+    done = set(frame.query("kind == 'final' and status == 'FINISHED'")["config_hash"])
+    assert 1 <= len(done) < 4 and (out / ".sweep.lock").exists()
+    again = subprocess.run([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", "executor.num_cpus=2",
+                            "tracking=mlflow", f"output_dir={out}"], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert f"{len(done)} already finished (skipped)" in again.stdout
+    assert "took over a stale lock" in again.stdout and "left RUNNING by the killed driver" in again.stdout
+    final = RecordsFile(out).frame.query("kind == 'final'")
+    assert len(final) == 4 and set(final["status"]) == {"FINISHED"}
+    assert "RUNNING" not in run_statuses(out).values()
