@@ -224,6 +224,14 @@ def test_every_remaining_colmap_error_names_the_path(tmp_path):
         read_colmap(write_text_model(tmp_path / "a", "1 PINHOLE 80 80 50 50 40 40"))
 
 
+def run_inspect(scene, *flags):
+    import subprocess
+    import sys
+    from pathlib import Path
+    return subprocess.run([str(Path(sys.executable).parent / "pipeline-data"), "inspect", str(scene), *flags],
+                          capture_output=True, text=True, timeout=300)
+
+
 def test_inspect_deep_finds_a_corrupt_or_wrongly_sized_image_by_name(tmp_path, capsys, generated):
     import shutil
 
@@ -241,6 +249,8 @@ def test_inspect_deep_finds_a_corrupt_or_wrongly_sized_image_by_name(tmp_path, c
     pngs[-1].write_bytes(b"not a png")
     assert data_cli(["inspect", str(scene), "--deep"]) == 1
     assert f"{pngs[-1]}: cannot read image" in capsys.readouterr().err
+    res = run_inspect(scene, "--deep")  # the real command
+    assert res.returncode == 1 and f"{pngs[-1]}: cannot read image" in res.stderr
 
 
 def test_a_nan_pose_names_the_file_and_the_frame(tmp_path, generated):
@@ -254,6 +264,8 @@ def test_a_nan_pose_names_the_file_and_the_frame(tmp_path, generated):
     with pytest.raises(DataError, match=rf"transforms_train.json: frame 3 \({data['frames'][3]['file_path']}\): "
                                         r"transform_matrix contains NaN or inf$"):
         read_blender(scene)
+    res = run_inspect(scene)  # the real command says the same, exit 1
+    assert res.returncode == 1 and f"frame 3 ({data['frames'][3]['file_path']})" in res.stderr
 
 
 def test_a_truncated_cameras_bin_is_named(tmp_path):
@@ -267,3 +279,5 @@ def test_a_truncated_cameras_bin_is_named(tmp_path):
     (scene / "sparse" / "0" / "cameras.bin").write_bytes(whole[:-7])
     with pytest.raises(DataError, match=rf"cameras.bin: truncated COLMAP camera file \({len(whole) - 7} bytes"):
         read_colmap(scene)
+    res = run_inspect(scene)
+    assert res.returncode == 1 and "cameras.bin: truncated COLMAP camera file" in res.stderr
