@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-.PHONY: env demo test test-fast mutate bench
+.PHONY: env demo test test-fast e2e mutate bench
 env: $(STAMP)
 
 # The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
@@ -28,6 +28,13 @@ test: $(STAMP)
 # Ray/MLflow integration sweeps, kill-and-resume episodes). The full suite is `make test`.
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
+
+# The viewer's browser tests (tests/test_view.py, marker e2e): the system Chromium, installed from
+# the Debian packages when missing (`make test` runs them whenever a browser is present).
+e2e: $(STAMP)
+	command -v chromium >/dev/null || { $$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get update -qq && \
+		$$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get install -y -qq chromium; }
+	$(BIN)/python -m pytest -q -m e2e
 
 # Mutation testing of the core's formulas ([tool.mutmut] in pyproject.toml: which modules, which
 # oracle tests); resumable. The mutated modules are the torch path, so the compiled backend is off

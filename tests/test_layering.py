@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "pipeline"
-EDGE_ONLY = {"hydra", "omegaconf", "ray", "mlflow", "matplotlib"}
+EDGE_ONLY = {"hydra", "omegaconf", "ray", "mlflow", "matplotlib", "viser", "playwright"}
 CORE = ["splat", "fisher", "acquisition", "fit", "data", "active", "eval", "cameras.py", "memory.py"]
 
 

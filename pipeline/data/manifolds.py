@@ -31,7 +31,7 @@ def estimate_up(cameras: Cameras) -> Tensor:
     return up / up.norm()
 
 
-def _plane_basis(up: Tensor, reference: int) -> tuple[Tensor, Tensor]:
+def plane_basis(up: Tensor, reference: int) -> tuple[Tensor, Tensor]:
     axis = torch.zeros(3, dtype=torch.float64)
     axis[reference] = 1
     if abs(float(axis @ up)) > 0.95:
@@ -44,7 +44,7 @@ def _plane_basis(up: Tensor, reference: int) -> tuple[Tensor, Tensor]:
 
 def azimuths_deg(cameras: Cameras, up: Tensor, center: Tensor, reference: int = 0) -> Tensor:
     """Counter-clockwise azimuth (degrees in [0, 360)) of each camera centre about ``up``."""
-    e1, e2 = _plane_basis(up.double(), reference)
+    e1, e2 = plane_basis(up.double(), reference)
     v = cameras.centers.double() - center.double()
     return torch.rad2deg(torch.atan2(v @ e2, v @ e1)) % 360
 

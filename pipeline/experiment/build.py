@@ -137,6 +137,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
                                 "retries": int(job_cfg["retries"]),
                                 # images only go to MLflow: none to make without it
                                 "round_images": int(job_cfg.get("round_images") or 0) if tracked else 0,
+                                "round_models": bool(job_cfg.get("round_models") or False),
                                 "job_dir": str(output_dir / "jobs" / job["config_hash"])}
             validate_job(job)
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)

@@ -104,6 +104,8 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
     pending_images: dict[int, dict[str, bytes]] = {}
 
     def on_selection(ep, rec):
+        if job["execution"].get("round_models"):  # the model that made this pick, for pipeline-view
+            ply.save(ep.trainer.rendered_gaussians, folder / "rounds" / f"round_{rec.round:02d}.ply")
         count = job["execution"].get("round_images", 0)
         if count > 0 and report is not None:
             pending_images[rec.round] = round_images(ep, rec, count)

@@ -1,0 +1,64 @@
+"""``pipeline-view``: open an episode in the web 3D viewer.
+
+    pipeline-view outputs/demo/jobs/<config hash>              # http://127.0.0.1:8080
+    pipeline-view RUN_ID --mlflow-uri sqlite:///outputs/demo/mlflow.db --port 8090
+    pipeline-view outputs/demo/jobs/<hash> --host 0.0.0.0       # reachable from other machines
+
+SOURCE: a job folder (finished, or running: the rounds so far) or an MLflow run id of a job
+with ``--mlflow-uri`` (its output_dir/config_hash tags name the job folder, which must be here).
+Serves on loopback unless ``--host`` says otherwise; prints the address; Ctrl-C stops it.
+Exit status 0, or 1 with one line naming the source and the reason.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+
+def start(source: str, mlflow_uri: str | None = None, host: str = "127.0.0.1", port: int = 8080,
+          start_round: int | None = None):
+    """Load the run and serve it; returns (viser server, EpisodeViewer). Raises ValueError."""
+    import viser  # the viewing edge
+
+    from pipeline.view.run import load_run
+    from pipeline.view.server import EpisodeViewer
+    run = load_run(source, mlflow_uri)
+    server = viser.ViserServer(host=host, port=port, label="gopre", verbose=False)
+    try:
+        viewer = EpisodeViewer(run, server, start_round)
+    except Exception:
+        server.stop()
+        raise
+    return server, viewer
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="pipeline-view", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("source", help="job folder outputs/<sweep>/jobs/<config hash>, or an MLflow run id")
+    parser.add_argument("--mlflow-uri", help="tracking URI when SOURCE is an MLflow run id")
+    parser.add_argument("--host", default="127.0.0.1", help="interface to serve on (default loopback)")
+    parser.add_argument("--port", type=int, default=8080)
+    parser.add_argument("--round", type=int, default=None, help="round shown first (default the last)")
+    args = parser.parse_args(argv)
+    try:
+        server, viewer = start(args.source, args.mlflow_uri, args.host, args.port, args.round)
+    except (ValueError, OSError) as err:
+        print(f"pipeline-view: {args.source}: {err}", file=sys.stderr)
+        return 1
+    print(f"pipeline-view: {viewer.run.title} at http://{args.host}:{server.get_port()} (Ctrl-C stops)",
+          flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

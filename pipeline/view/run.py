@@ -1,0 +1,157 @@
+"""One episode as the viewer sees it: its job, scene, protocol views, rounds and models.
+
+``load_run(source)`` reads a job folder ``outputs/<sweep>/jobs/<config hash>`` (its entry in the
+sweep's ``jobs.json``, ``artifacts/result.json`` of a finished job or the checkpoint of one still
+running, ``artifacts/model.ply`` and the per-round models ``rounds/round_NN.ply`` that
+``job.round_models=true`` keeps), or an MLflow run id (its ``output_dir`` and ``config_hash`` tags
+name that folder). ``EpisodeRun.round_state(r)`` is what the episode knew when it made the pick of
+round ``r``: the views taken, the probes, every candidate's score, the pick, and the model.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from pipeline.active.config import EpisodeConfig
+from pipeline.data.load import load_scene
+from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.scene import Scene, Split
+from pipeline.experiment.build import episode_config
+from pipeline.experiment.export import from_checkpoint
+from pipeline.splat import Gaussians, ply
+
+ROUND_MODEL = "round_{:02d}.ply"   # under <job folder>/rounds/ (job.round_models=true)
+
+
+@dataclass
+class RoundState:
+    """The episode at the pick of one round (``index`` counts from 0)."""
+
+    index: int
+    taken: list[int]             # pool ids trained on when this round's pick was made
+    probes: list[int]            # pool ids of this round's probe poses
+    scores: dict[int, float]     # every candidate's score
+    picked: list[int]            # the pool ids this round chose
+    psnr: float                  # on the curve's test views, before the pick
+    model: Gaussians
+    model_is_final: bool         # True when this round's model was not kept (the final one stands in)
+
+
+@dataclass
+class EpisodeRun:
+    folder: Path
+    job: dict
+    cfg: EpisodeConfig
+    scene: Scene
+    views: ProtocolViews
+    initial: list[int]
+    selected: list[int]
+    rounds: list[dict]           # the selection rounds' records (the final evaluation excluded)
+    final_model: Gaussians
+    final_psnr: float | None     # None while the job runs
+    round_models: dict[int, Path] = field(default_factory=dict)
+
+    @property
+    def pool(self) -> Split:
+        return self.scene.split(self.views.pool_split)
+
+    @property
+    def test(self) -> Split:
+        return self.scene.split(self.views.test_split)
+
+    @property
+    def title(self) -> str:
+        j = self.job
+        return f"{j['method']} on {j['scene']} (seed {j['seed']}, {j['protocol']['kind']})"
+
+    def model(self, index: int) -> tuple[Gaussians, bool]:
+        """The model that made round ``index``'s pick, or the final one when it was not kept."""
+        if index in self.round_models:
+            return ply.load(self.round_models[index]), False
+        return self.final_model, True
+
+    def round_state(self, index: int) -> RoundState:
+        if not 0 <= index < len(self.rounds):
+            raise IndexError(f"round {index} outside 0..{len(self.rounds) - 1}")
+        rec = self.rounds[index]
+        before = sum(len(r["selected"]) for r in self.rounds[:index])
+        model, is_final = self.model(index)
+        return RoundState(index, self.initial + self.selected[:before], list(rec["probes"]),
+                          {int(k): float(v) for k, v in rec["scores"].items()}, list(rec["selected"]),
+                          float(rec["test_psnr"]), model, is_final)
+
+
+def job_entry(folder: Path) -> dict:
+    """The sweep's description of the job in ``folder`` (its ``jobs.json``, matched by hash)."""
+    listing = folder.parent.parent / "jobs.json"
+    if not listing.exists():
+        raise ValueError(f"{folder}: no {listing} beside it (pass a job folder "
+                         "outputs/<sweep>/jobs/<config hash>)")
+    for job in json.loads(listing.read_text()):
+        if job.get("config_hash") == folder.name:
+            if job.get("kind", "episode") != "episode":
+                raise ValueError(f"{folder}: a {job['kind']!r} job, not an episode")
+            return job
+    raise ValueError(f"{folder}: no job with config hash {folder.name!r} in {listing}")
+
+
+def scene_of(job: dict, result: dict | None) -> Scene:
+    """The scene the job ran on, read at the episode's image width."""
+    width = episode_config(job).fit.image_width
+    tried = [result["scene"]] if result and result.get("scene") else []
+    tried.append(job["scene_path"])
+    for path in tried:
+        if Path(path).exists():
+            return load_scene(path, width=width)
+    raise ValueError(f"the scene of job {job['config_hash']} is not here: tried {', '.join(tried)}")
+
+
+def load_folder(folder: Path) -> EpisodeRun:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: no such job folder")
+    job = job_entry(folder)
+    result_file = folder / "artifacts" / "result.json"
+    checkpoint = folder / "checkpoint" / "episode.pt"
+    if result_file.exists():
+        result = json.loads(result_file.read_text())
+        records, initial, selected = result["rounds"][:-1], result["initial"], result["selected"]
+        final_psnr = float(result["final"]["psnr"])
+        model = ply.load(folder / "artifacts" / "model.ply")
+    elif checkpoint.exists():  # still running: the rounds so far, the model of the last one
+        result, state = None, torch.load(checkpoint, weights_only=False, map_location="cpu")
+        done = bool(state.get("done"))
+        records = state["records"][:-1] if done else state["records"]
+        picked = [i for r in records for i in r["selected"]]
+        initial, selected = state["taken"][:len(state["taken"]) - len(picked)], picked
+        final_psnr, model = None, from_checkpoint(checkpoint)
+    else:
+        raise ValueError(f"{folder}: neither artifacts/result.json nor checkpoint/episode.pt: "
+                         "the job has not finished a round")
+    cfg = episode_config(job)
+    scene = scene_of(job, result)
+    views = build_protocol(scene, cfg.protocol)
+    kept = {i: folder / "rounds" / ROUND_MODEL.format(i) for i in range(len(records))}
+    return EpisodeRun(folder, job, cfg, scene, views, list(initial), list(selected), list(records),
+                      model, final_psnr, {i: p for i, p in kept.items() if p.exists()})
+
+
+def folder_of_mlflow_run(uri: str, run_id: str) -> Path:
+    from mlflow import MlflowClient  # the tracking edge
+    try:
+        tags = MlflowClient(tracking_uri=uri).get_run(run_id).data.tags
+    except Exception as err:
+        raise ValueError(f"MLflow run {run_id} at {uri}: {type(err).__name__}: {err}") from None
+    if "output_dir" not in tags or "config_hash" not in tags:
+        raise ValueError(f"MLflow run {run_id} at {uri}: not a job run (no output_dir/config_hash tags)")
+    return Path(tags["output_dir"]) / "jobs" / tags["config_hash"]
+
+
+def load_run(source: str, mlflow_uri: str | None = None) -> EpisodeRun:
+    """A job folder, or an MLflow run id with ``mlflow_uri``; ValueError names what is missing."""
+    folder = folder_of_mlflow_run(mlflow_uri, source) if mlflow_uri else Path(source)
+    return load_folder(folder)
