@@ -118,7 +118,7 @@ class EpisodeViewer:
         first = centers[0] - middle
         side = first - (first @ up) * up
         side = side / max(np.linalg.norm(side), 1e-9)
-        self.server.initial_camera.position = tuple(middle + 2.2 * radius * side + 1.2 * radius * up)
+        self.server.initial_camera.position = tuple(middle + 1.5 * radius * side + 0.9 * radius * up)
         self.server.initial_camera.look_at = tuple(middle)
         self.server.initial_camera.up = tuple(up)
 
