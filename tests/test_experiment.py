@@ -126,7 +126,19 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
     history = client.get_metric_history(run.info.run_id, "test_psnr")
     assert sorted(m.step for m in history) == [2, 3]  # step = number of views
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
-    assert {"selected_views.json", "renders", "config.json", "result.json", "model.ply"} <= artifacts
+    assert {"selected_views.json", "renders", "uncertainty", "config.json", "result.json", "model.ply"} <= artifacts
+    # the final model's ground truth | render | error | variance per shown view
+    from PIL import Image
+    row = client.download_artifacts(run.info.run_id, "uncertainty", str(tmp_path / "u"))
+    shapes = {Image.open(p).size for p in Path(row).glob("*.png")}
+    assert shapes == {(4 * 32, 32)}, shapes
+    # the sweep's figures on the parent run (the qualitative grid, the curves)
+    figures = {a.path for a in client.list_artifacts(parent, "figures")}
+    assert {"figures/qualitative.png", "figures/psnr_vs_views.png"} <= figures, figures
+    # pipeline-view finds the job folder of an MLflow run
+    from pipeline.view.run import folder_of_mlflow_run
+    assert folder_of_mlflow_run(summary.tracking_uri, run.info.run_id).resolve() == \
+        (ray_dir / "jobs" / run.data.tags["config_hash"]).resolve()
     # the final model as a standard PLY, in MLflow and in the job folder, exportable from either
     from pipeline.experiment.export import main as export_main
     from pipeline.splat import ply

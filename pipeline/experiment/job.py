@@ -25,6 +25,7 @@ from PIL import Image
 from pipeline.active import RoundRecord, episode_plan, run_episode
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
+from pipeline.data.protocols import build_protocol
 from pipeline.data.scene import Scene
 from pipeline.experiment.build import episode_config, uncertainty_config
 from pipeline.fisher.exact import predictive_variance_maps, view_fisher
@@ -98,6 +99,22 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     return out
 
 
+def uncertainty_rows(g, background: torch.Tensor, taken, cams, truth: torch.Tensor,
+                     preds: torch.Tensor) -> list[torch.Tensor]:
+    """One [H, 4W, 3] row per view of ``cams``: ground truth | render | squared error | per-pixel
+    predictive variance (sum over channels, S = 1 / (H_train + lambda) of the ``taken`` views),
+    the error and the variance each on its own colour scale."""
+    s = posterior_variance(view_fisher(g, taken, background).sum(0), ROUND_IMAGE_LAMBDA)
+    maps = predictive_variance_maps(g, cams, s, background).sum(-1)
+    return [uncertainty_row(truth[i], preds[i], maps[i].to(preds)) for i in range(len(cams))]
+
+
+def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
+    """[H, W, 3] ground truth and render, [H, W] variance -> [H, 4W, 3]."""
+    error = (render - truth).square().sum(-1)
+    return torch.cat([truth, render.clamp(0, 1), colormap(error), colormap(variance)], 1)
+
+
 def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = episode_config(job)
     rounds = len(episode_plan(scene, cfg).round_views) + 1
@@ -138,6 +155,12 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
                  "model.ply": ply.export_bytes(result.gaussians)}  # the final model, INRIA 3DGS PLY
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
+    # the final model's uncertainty against its error on the same views (MLflow artifacts)
+    pool = scene.split(build_protocol(scene, cfg.protocol).pool_split)
+    taken = pool.cameras[result.initial + result.selected]
+    rows = uncertainty_rows(result.gaussians, background, taken, views.cameras[shown], truth, preds)
+    for view, row in zip(shown, rows):
+        artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 
@@ -145,9 +168,7 @@ def run_uncertainty_job(job: dict, scene: Scene, folder: Path, report: Report | 
     out = run_uncertainty_experiment(scene, episode_config(job), uncertainty_config(job))
     artifacts = {}
     for i, view in enumerate(out["map_ids"]):
-        error = (out["renders"][i] - out["ground_truth"][i]).square().sum(-1)
-        variance = out["variance_maps"][i].sum(-1)
-        row = torch.cat([out["ground_truth"][i], out["renders"][i], colormap(error), colormap(variance)], 1)
+        row = uncertainty_row(out["ground_truth"][i], out["renders"][i], out["variance_maps"][i].sum(-1))
         artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)
     result = {k: v for k, v in out.items() if k not in ("variance_maps", "renders", "ground_truth")}
     artifacts["sparsification.json"] = json.dumps(result).encode()

@@ -266,7 +266,24 @@ class MlflowTracker:
         if self.parent is None:
             return
         self._log_metrics(self.parent, [(k, v, 0) for k, v in summary.items() if isinstance(v, (int, float))])
+        try:
+            self._log_sweep_figures()
+        except Exception as err:  # a figure must not keep the sweep's run open
+            print(f"warning: the sweep's figures were not logged to MLflow: {str(err).splitlines()[0][:300]}",
+                  flush=True)
         self.client.set_terminated(self.parent, "FAILED" if summary.get("failed") else "FINISHED")
+
+    def _log_sweep_figures(self) -> None:
+        """The report's figures of the sweep's records (PSNR curves, the qualitative grid with the
+        ground truth once per view, uncertainty maps) as the parent run's ``figures/``."""
+        from pipeline.report.report import load_records, make_figures  # the reporting edge
+        try:
+            frame = load_records(self.output_dir)
+        except (FileNotFoundError, ValueError):
+            return
+        with tempfile.TemporaryDirectory() as tmp:
+            if make_figures(frame, Path(self.output_dir), Path(tmp)):
+                self.client.log_artifacts(self.parent, str(Path(tmp) / "figures"), "figures")
 
 
 def make_tracker(cfg: dict, output_dir: Path, experiment: str):
