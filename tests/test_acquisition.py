@@ -187,13 +187,13 @@ def test_bad_strategy_options_name_the_option(name, options, match):
 
 def test_popgs_block_greedy_batch_over_two_taken_views_matches_dense_blocks():
     """The block variant against dense per-Gaussian blocks from autograd Jacobians. Two taken views
-    (H is their sum, not the last one) and a greedy batch of two: the first
-    pick's scores and the second pick follow the dense per-Gaussian blocks."""
+    (H is their sum, not the last one) and a greedy batch of four from seven: the first pick's
+    scores and every later pick (H grown by each pick's blocks) follow the dense blocks."""
     from pipeline.splat import Gaussians, RenderSettings, render
     from pipeline.splat.scenes import orbit_cameras
     f64 = torch.float64
     g = random_scene(8, seed=4, dtype=f64, sh_degree=0)
-    cams = orbit_cameras(5, 8, 8, dtype=f64, radius=2.4)
+    cams = orbit_cameras(9, 8, 8, dtype=f64, radius=2.4)
     settings = RenderSettings(tile_size=4, chunk=4)
     groups = ("means", "log_scales", "quats", "logit_opacities", "sh0")
 
@@ -205,18 +205,22 @@ def test_popgs_block_greedy_batch_over_two_taken_views_matches_dense_blocks():
         js = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
         j = torch.cat([j.reshape(j.shape[0], 8, -1) for j in js], 2)  # [O, N, 14]
         return torch.einsum("onp,onq->npq", j, j)
-    blocks = [block(cams[i]) for i in range(5)]
+    blocks = [block(cams[i]) for i in range(9)]
     lam = 1e-2
     sigma_inv = blocks[0] + blocks[1] + lam * torch.eye(14, dtype=f64)
 
     def gain(base, b):
         return (torch.linalg.slogdet(base + b)[1] - torch.linalg.slogdet(base)[1]).sum().item()
-    first = {c: gain(sigma_inv, blocks[c]) for c in (2, 3, 4)}
-    best = max(first, key=first.get)
-    second = max((c for c in (2, 3, 4) if c != best), key=lambda c: gain(sigma_inv + blocks[best], blocks[c]))
-    ctx = SelectionContext(g, cams[[2, 3, 4]], [2, 3, 4], cams[[0, 1]], torch.ones(3, dtype=f64),
+    pool = list(range(2, 9))
+    first = {c: gain(sigma_inv, blocks[c]) for c in pool}
+    picks = []
+    for _ in range(4):
+        best = max((c for c in pool if c not in picks), key=lambda c: gain(sigma_inv, blocks[c]))
+        picks.append(best)
+        sigma_inv = sigma_inv + blocks[best]
+    ctx = SelectionContext(g, cams[pool], pool, cams[[0, 1]], torch.ones(3, dtype=f64),
                            torch.Generator(), settings=settings)
-    sel = make_strategy("popgs", variant="block", lam=lam).select(ctx, count=2)
+    sel = make_strategy("popgs", variant="block", lam=lam).select(ctx, count=4)
     for c, value in first.items():
         assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"popgs block first-pick score of {c}"
-    assert sel.chosen == [best, second]
+    assert sel.chosen == picks

@@ -277,3 +277,14 @@ def test_gopre_without_the_sh_rest_scores_on_the_other_groups_only(setup):
         assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"gopre without SH rest, view {c}"
     with pytest.raises(ValueError, match="fisher_groups must be one of \\['all', 'without_sh_rest'\\], got 'some'"):
         make_strategy("gopre", fisher_groups="some")
+
+
+def test_gopre_scores_a_pool_of_one_and_needs_probes_for_a_probe_goal(setup):
+    """The last round can leave one candidate: M = I is built from it alone."""
+    g, cams, fishers = setup
+    ctx = SelectionContext(g, cams[[2]], [2], cams[[0]], BACKGROUND, torch.Generator(), None, settings=SETTINGS)
+    sel = make_strategy("gopre", tau=TAU, lam=LAM, goal="identity").select(ctx)
+    assert sel.chosen == [2]
+    assert sel.scores[2] == pytest.approx(expected_gopre(fishers, "logdet", "identity")[2], rel=1e-8)
+    with pytest.raises(ValueError, match="gopre needs probe poses from the target manifold"):
+        make_strategy("gopre").select(ctx)
