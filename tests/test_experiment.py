@@ -72,6 +72,29 @@ def test_method_presets_carry_their_protocol_and_splat_overrides():
         expand_jobs(composed(["method=[fisherrf]", "+method.fisherrf.options.hessian=nope"]))
 
 
+ABLATIONS = sorted(p.stem for p in (CONF_DIR / "ablation").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("ablation", ABLATIONS)
+def test_every_science_ablation_is_one_axis_on_lego_with_three_seeds(ablation):
+    jobs = expand_jobs(composed(["experiment=science_ablation", f"ablation={ablation}", "data_root=/datasets"]))
+    assert {j["sweep"] for j in jobs} == {f"science_ablation_{ablation}"}
+    assert {j["scene"] for j in jobs} == {"lego"} and {j["seed"] for j in jobs} == {0, 1, 2}
+    axes = {tuple(j["axes"]) for j in jobs}
+    assert len(axes) == 1 and len(next(iter(axes))) == 1  # one axis
+    values = {tuple(j["axes"].values()) for j in jobs}
+    assert len(values) >= 2 and len(jobs) == 3 * len(values) * len({j["method"] for j in jobs})
+
+
+def test_the_fisherrf_policy_ablation_crosses_both_hessians_with_both_policies():
+    """The ablation sets its methods (it comes after the experiment in the defaults), and its axis
+    overrides the policy that fisherrf_released's preset carries."""
+    jobs = expand_jobs(composed(["experiment=science_ablation", "ablation=fisherrf_policy", "data_root=/d"]))
+    cells = {(j["method"], j["options"].get("hessian", "exact"), j["splat"]["post_selection"]) for j in jobs}
+    assert cells == {(m, h, p) for m, h in (("fisherrf", "exact"), ("fisherrf_released", "fisherrf_released"))
+                     for p in ("reset_opacity", "reload")}
+
+
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_preset_runs_in_its_tiny_form(preset, base):
     cfg = composed([f"experiment={preset}", *TINY, "executor=local", "tracking=none",
