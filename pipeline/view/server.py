@@ -226,11 +226,15 @@ class EpisodeViewer:
             handle.remove()
         self.labels = {}
         positions, _ = camera_poses(self.run.pool.cameras)
-        for view, (role, caption) in roles.items():
-            if role in ("selected", "picked"):
-                text = caption.replace("selected ", "").replace("picked this round ", "next ")
-                self.labels[view] = self.server.scene.add_label(f"/labels/{view:04d}", text,
-                                                                position=positions[view])
+        order = {view: k + 1 for k, view in enumerate(self.run.selected)}
+        for view, (role, _caption) in roles.items():
+            if role == "selected":
+                text = f"#{order[view]}"
+            elif role == "picked":
+                text = "next best view" if self.goal is not None else f"next (#{order.get(view, '?')})"
+            else:
+                continue
+            self.labels[view] = self.server.scene.add_label(f"/labels/{view:04d}", text, position=positions[view])
 
     def _camera_listing(self, roles: dict[int, tuple[str, str]]) -> str:
         def ids(role):
