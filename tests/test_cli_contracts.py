@@ -123,3 +123,21 @@ def test_the_ray_executor_starts_its_own_ray_and_shuts_it_down(tmp_path):
                                   f"output_dir={tmp_path / 'o'}"]))
     assert summary.finished == 1
     assert not ray.is_initialized()  # started for the sweep, stopped after it
+
+
+def test_relaunch_skips_only_jobs_whose_final_row_is_finished(tmp_path):
+    """What a relaunch counts as done: a FINISHED final row (with its code version); a FAILED job,
+    a job with round rows only (interrupted) and a rewritten job's old rows are not."""
+    from pipeline.experiment.records import RecordsFile
+    records = RecordsFile(tmp_path)
+    assert records.finished_hashes() == set()
+    records.add([{"config_hash": "a", "kind": "round", "status": "FINISHED", "code_version": "v1"},
+                 {"config_hash": "a", "kind": "final", "status": "FINISHED", "code_version": "v1"},
+                 {"config_hash": "b", "kind": "final", "status": "FAILED", "code_version": "v1"},
+                 {"config_hash": "c", "kind": "round", "status": "FINISHED", "code_version": "v1"}])
+    assert RecordsFile(tmp_path).finished_versions() == {"a": "v1"}  # read back from the file
+    records.add([{"config_hash": "b", "kind": "final", "status": "FINISHED", "code_version": "v2"}])
+    records.add([{"config_hash": "a", "kind": "final", "status": "FAILED", "code_version": "v3"}])
+    again = RecordsFile(tmp_path)
+    assert again.finished_hashes() == {"b"} and again.finished_versions() == {"b": "v2"}
+    assert sorted(again.frame["config_hash"]) == ["a", "b", "c"]  # a's old rows replaced, not kept
