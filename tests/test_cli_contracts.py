@@ -141,3 +141,15 @@ def test_relaunch_skips_only_jobs_whose_final_row_is_finished(tmp_path):
     again = RecordsFile(tmp_path)
     assert again.finished_hashes() == {"b"} and again.finished_versions() == {"b": "v2"}
     assert sorted(again.frame["config_hash"]) == ["a", "b", "c"]  # a's old rows replaced, not kept
+
+
+@pytest.mark.parametrize("value,expected", [("3", [3]), ("[1,2]", [1, 2]), ("zero", None), ("[]", None),
+                                            ("[a]", None), ("null", None), ("true", None), ("[1,true]", None)])
+def test_seeds_are_a_list_of_integers_or_one_integer(value, expected):
+    from pipeline.experiment.build import ConfigError, seeds_of
+    cfg = composed([f"seeds={value}"])
+    if expected is not None:
+        assert seeds_of(cfg) == expected
+    else:
+        with pytest.raises(ConfigError, match=r"^seeds: expected a non-empty list of integers, e\.g\. seeds=\[0,1,2\], got "):
+            seeds_of(cfg)

@@ -89,7 +89,8 @@ def _axes(cfg: DictConfig) -> list[dict]:
 
 def seeds_of(cfg: DictConfig) -> list[int]:
     """``seeds``: a list of integers (or one integer); anything else is a config error."""
-    seeds = _container(cfg, "seeds") if not isinstance(cfg.get("seeds"), (int, str)) else cfg.get("seeds")
+    value = cfg.get("seeds")
+    seeds = _container(cfg, "seeds") if OmegaConf.is_config(value) else value  # a list node, or a scalar
     seeds = [seeds] if isinstance(seeds, int) and not isinstance(seeds, bool) else seeds
     if not isinstance(seeds, list) or not seeds or any(
             isinstance(s, bool) or not isinstance(s, int) for s in seeds):
