@@ -70,6 +70,13 @@ def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options
     assert first.round_seconds >= 0 and first.peak_rss_mb > 0
 
 
+@pytest.mark.parametrize("name", ["random", "coverage", "fisherrf", "popgs", "gopre", "gaussmi", "activenerf"])
+def test_a_selection_picks_one_view_unless_asked_for_more(ctx_parts, name):
+    options = {"steps": 5} if name == "activenerf" else {}
+    sel = make_strategy(name, **options).select(make_ctx(ctx_parts))
+    assert len(sel.chosen) == 1 and set(sel.scores) == {10 + i for i in range(6)}
+
+
 def test_greedy_second_pick_equals_first_pick_after_adding_the_first(ctx_parts):
     strategy = make_strategy("gopre")
     both = strategy.select(make_ctx(ctx_parts), count=2)
