@@ -281,6 +281,13 @@ def test_the_viewer_in_a_headless_browser(viewer, tmp_path):
             assert f"selected (pick order): {run.selected[0]}" in text
             assert f"test views: {len(run.views.test_ids)}" in text
 
+            view = run.views.test_ids[-1]  # a camera chosen in the GUI shows its images
+            page.get_by_label("Camera view", exact=True).click()
+            page.get_by_role("option", name=f"test {view}", exact=True).click()
+            shown = f"test {view} ({run.test.names[view]})"
+            page.wait_for_function(f"document.body.innerText.includes({json.dumps(shown)})", timeout=60_000)
+            assert page.locator("img").count() >= 3
+
             def score_with_start(angle: str) -> str:
                 """Type the start angle, press Score, wait for the viewer and then the page."""
                 start = page.get_by_label("Start angle (deg)")

@@ -179,7 +179,7 @@ class EpisodeViewer:
         self.score_button.on_click(lambda _e: self.score())
         with gui.add_folder("Camera"):
             names = [k.label for k in self.frustums]
-            self.camera_choice = gui.add_dropdown("Show", names, initial_value=names[0])
+            self.camera_choice = gui.add_dropdown("Camera view", names, initial_value=names[0])
             self.camera_text = gui.add_markdown("Click a camera, or choose one above.")
             blank = np.zeros((run.pool.cameras.height, run.pool.cameras.width, 3), np.uint8)
             self.image_truth = gui.add_image(blank, label="ground truth")
