@@ -205,24 +205,29 @@ def face_bin(direction: torch.Tensor) -> torch.Tensor:
     return (direction @ normals.T).argmax(dim=1)
 
 
-def test_gaussmi_score_is_the_composited_reliability_entropy(setup):
+@pytest.mark.parametrize("taken", [(0,), (0, 1), (0, 0)])
+def test_gaussmi_score_is_the_composited_reliability_entropy(setup, taken):
+    """Log-odds per Gaussian and cube face accumulate over every taken view (a view taken twice
+    counts twice: views on the same face add up)."""
     g, cams, _ = setup
     sigma = 0.15
     target = random_scene(8, seed=12, dtype=F64, sh_degree=1)
-    taken_images = render(target, cams[[0]], BACKGROUND, settings=DENSE).rgb
-    pred = render(g, cams[[0]], BACKGROUND, settings=DENSE).rgb[0]
-    error = (pred - taken_images[0]).square().mean(-1)
-    reliable = torch.exp(-error / (2 * sigma ** 2)).clamp(0.05, 0.95)
-    sums = (compositing_weights(g, cams[[0]]) * torch.logit(reliable)).sum((1, 2))  # [N]
+    taken_images = render(target, cams[list(taken)], BACKGROUND, settings=DENSE).rgb
     log_odds = torch.zeros(len(g), 6, dtype=F64)
-    log_odds[torch.arange(len(g)), face_bin(cams[[0]].centers[0] - g.means)] += sums
+    for k, t in enumerate(taken):
+        pred = render(g, cams[[t]], BACKGROUND, settings=DENSE).rgb[0]
+        error = (pred - taken_images[k]).square().mean(-1)
+        reliable = torch.exp(-error / (2 * sigma ** 2)).clamp(0.05, 0.95)
+        sums = (compositing_weights(g, cams[[t]]) * torch.logit(reliable)).sum((1, 2))  # [N]
+        log_odds[torch.arange(len(g)), face_bin(cams[[t]].centers[0] - g.means)] += sums
+    pool = [c for c in range(1, 6) if c not in taken][:3]  # view 1 shares cube faces with view 0
     expected = {}
-    for c in (1, 2, 3):
+    for c in pool:
         p = torch.sigmoid(log_odds[torch.arange(len(g)), face_bin(cams[[c]].centers[0] - g.means)])
         entropy = -(p * torch.log2(p) + (1 - p) * torch.log2(1 - p))
         expected[c] = float((compositing_weights(g, cams[[c]]) * entropy[:, None, None]).sum())
-    ctx = context(g, cams)
-    ctx.taken_images = taken_images
+    ctx = SelectionContext(g, cams[pool], pool, cams[list(taken)], BACKGROUND, torch.Generator(),
+                           taken_images=taken_images, settings=SETTINGS)
     sel = make_strategy("gaussmi", error_sigma=sigma).select(ctx)
     for c, value in expected.items():
         assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"gaussmi score of view {c}"
@@ -288,3 +293,42 @@ def test_gopre_scores_a_pool_of_one_and_needs_probes_for_a_probe_goal(setup):
     assert sel.scores[2] == pytest.approx(expected_gopre(fishers, "logdet", "identity")[2], rel=1e-8)
     with pytest.raises(ValueError, match=r"^gopre needs probe poses from the target manifold \(ctx\.probes\)$"):
         make_strategy("gopre").select(ctx)
+
+
+def test_gaussmi_direction_bins_are_the_cube_faces():
+    from pipeline.acquisition.gaussmi import direction_bins
+    directions = torch.tensor([[-2.0, 0.3, 0.1], [3.0, -1, 0], [0.2, -5, 1], [0, 4, -1], [1, 1, -6], [0, -2, 7]],
+                              dtype=F64) / 10  # not unit: the bins take the raw offset
+    assert direction_bins(torch.zeros(6, 3, dtype=F64), directions).tolist() == [0, 1, 2, 3, 4, 5]
+    assert torch.equal(direction_bins(torch.zeros(6, 3, dtype=F64), directions), face_bin(directions))
+
+
+@pytest.mark.parametrize("name", ["gaussmi", "activenerf"])
+def test_error_driven_strategies_need_the_taken_images(setup, name):
+    g, cams, _ = setup
+    with pytest.raises(ValueError, match=rf"^{name} needs the taken views' images \(ctx\.taken_images\)$"):
+        make_strategy(name).select(context(g, cams))
+
+
+def test_activenerf_fit_follows_the_gradient_of_its_nll(setup, monkeypatch):
+    """The fit's first step sees the gradient of the explicit Gaussian NLL of the taken view,
+    mean_p [r_p / (2 V_p) + log(V_p) / 2], V_p = sum_g w_pg e^(log_var_g) + v_min, at v_min = 0.05."""
+    g, cams, _ = setup
+    init, v_min = -1.5, 0.05
+    ctx = context(g, cams)
+    target = random_scene(8, seed=12, dtype=F64, sh_degree=1)
+    ctx.taken_images = render(target, cams[[0]], BACKGROUND, settings=DENSE).rgb
+    residual = (render(g, cams[[0]], BACKGROUND, settings=DENSE).rgb[0] - ctx.taken_images[0]).square().sum(-1)
+    weights = compositing_weights(g, cams[[0]])
+    log_var = torch.full((len(g),), init, dtype=F64, requires_grad=True)
+    v = (weights * torch.exp(log_var)[:, None, None]).sum(0) + v_min
+    (residual / (2 * v) + 0.5 * torch.log(v)).mean().backward()
+    seen = []
+
+    class Recording(torch.optim.SGD):
+        def step(self, closure=None):
+            seen.append(self.param_groups[0]["params"][0].grad.clone())
+            return super().step(closure)
+    monkeypatch.setattr(torch.optim, "Adam", lambda params, lr: Recording(params, lr=lr))
+    make_strategy("activenerf", steps=1, init_log_var=init, min_variance=v_min).fit_variance(ctx)
+    assert torch.allclose(seen[0], log_var.grad, rtol=1e-8, atol=1e-15)
