@@ -171,6 +171,10 @@ def test_a_run_without_round_models_shows_the_final_model(tiny_run, tmp_path):
     run = load_run(str(folder))
     state = run.round_state(0)
     assert state.model_is_final and torch.equal(state.model.means, run.final_model.means)
+    (folder / "artifacts" / "model.ply").unlink()  # a run older than the exporter: the checkpoint's model
+    older = load_run(str(folder))
+    assert torch.equal(older.final_model.means, run.final_model.means)
+    assert torch.equal(older.final_model.shN, run.final_model.shN)
 
 
 def test_bad_sources_name_what_is_missing(tiny_run, tmp_path, capsys):

@@ -121,7 +121,13 @@ def load_folder(folder: Path) -> EpisodeRun:
         result = json.loads(result_file.read_text())
         records, initial, selected = result["rounds"][:-1], result["initial"], result["selected"]
         final_psnr = float(result["final"]["psnr"])
-        model = ply.load(folder / "artifacts" / "model.ply")
+        saved = folder / "artifacts" / "model.ply"  # absent in runs older than the exporter
+        if saved.exists():
+            model = ply.load(saved)
+        elif checkpoint.exists():
+            model = from_checkpoint(checkpoint)
+        else:
+            raise ValueError(f"{folder}: no final model (neither artifacts/model.ply nor checkpoint/episode.pt)")
     elif checkpoint.exists():  # still running: the rounds so far, the model of the last one
         result, state = None, torch.load(checkpoint, weights_only=False, map_location="cpu")
         done = bool(state.get("done"))
