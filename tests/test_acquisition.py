@@ -68,6 +68,8 @@ def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options
     for k, v in first.scores.items():
         assert shuffled.scores[k] == pytest.approx(v, rel=1e-6)  # float32 fits: ~1e-9 noise
     assert first.round_seconds >= 0 and first.peak_rss_mb > 0
+    assert 0 <= first.fisher_seconds <= first.round_seconds
+    assert (first.fisher_seconds > 0) == (first.fisher_views > 0)
 
 
 @pytest.mark.parametrize("name", ["random", "coverage", "fisherrf", "popgs", "gopre", "gaussmi", "activenerf"])
@@ -118,8 +120,11 @@ def test_reduce_pool_is_seeded_and_sized():
     a = reduce_pool(ids, 0.25, torch.Generator().manual_seed(1))
     b = reduce_pool(list(reversed(ids)), 0.25, torch.Generator().manual_seed(1))
     assert a == b and len(a) == 10 and set(a) <= set(ids)
-    with pytest.raises(ValueError, match="keep_fraction"):
-        reduce_pool(ids, 0.0, torch.Generator())
+    assert reduce_pool(ids, 1.0, torch.Generator()) == ids  # keep everything
+    assert len(reduce_pool(ids[:3], 0.1, torch.Generator())) == 1  # at least one
+    for bad in (0.0, 1.5, -0.2):
+        with pytest.raises(ValueError, match=r"^keep_fraction must be in \(0, 1\], got"):
+            reduce_pool(ids, bad, torch.Generator())
 
 
 def test_gaussmi_prefers_directions_not_yet_observed():
@@ -151,12 +156,15 @@ def test_probe_count_and_sampling():
     from pipeline.acquisition import probe_count, sample_probes
     assert probe_count(25, 100) == 25 and probe_count(25, 10) == 10
     assert probe_count(0.125, 160) == 20 and probe_count(0.125, 3) == 1
-    with pytest.raises(ValueError, match="probe count"):
-        probe_count(0, 10)
+    assert probe_count(25.0, 100) == 25 and probe_count(1.0, 10) == 1 and probe_count(1, 10) == 1  # counts
+    assert probe_count(1.5, 10) == 1  # a float above 1 is a count, cut to an integer
+    for bad in (0, 0.0, -3):
+        with pytest.raises(ValueError, match="probe count must be >= 1 or a fraction in"):
+            probe_count(bad, 10)
     a = sample_probes(list(range(50)), 5, torch.Generator().manual_seed(0))
     assert a == sample_probes(list(range(49, -1, -1)), 5, torch.Generator().manual_seed(0))
     assert len(set(a)) == 5
-    with pytest.raises(ValueError, match="no views"):
+    with pytest.raises(ValueError, match=r"^sample_probes: the target manifold has no views to probe$"):
         sample_probes([], 5, torch.Generator())
 
 

@@ -61,9 +61,8 @@ class Strategy(Protocol):
 
 
 def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:
-    """Flattened exact diagonal Fisher of each view, [C, D] float64."""
-    if len(cameras) == 0:
-        return torch.zeros(0, 0, dtype=torch.float64)
+    """Flattened exact diagonal Fisher of each view, [C, D] float64 (C >= 1: callers never ask for
+    the Fisher of no view)."""
     start = time.perf_counter()
     out = view_fisher(ctx.gaussians, cameras, ctx.background, spec, ctx.settings).flatten(1)
     ctx.fisher_seconds += time.perf_counter() - start
