@@ -239,3 +239,31 @@ def test_popgs_block_greedy_batch_over_two_taken_views_matches_dense_blocks():
     for c, value in first.items():
         assert sel.scores[c] == pytest.approx(value, rel=1e-8), f"popgs block first-pick score of {c}"
     assert sel.chosen == picks
+
+
+def test_a_greedy_batch_reports_the_first_picks_scores_and_counts_its_fisher_work(ctx_parts, monkeypatch):
+    """Scores are those of the first pick; a batch larger than the pool takes each view once; the
+    Fisher views and seconds add up over the candidate, taken and probe passes (a fake clock that
+    only the acquisition module reads: each call one second later)."""
+    from types import SimpleNamespace
+
+    from pipeline.acquisition import base
+    one = make_strategy("gopre").select(make_ctx(ctx_parts), count=1)
+    ticks = iter(range(1000))
+    monkeypatch.setattr(base, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    many = make_strategy("gopre").select(make_ctx(ctx_parts), count=10)
+    assert many.scores.keys() == one.scores.keys() and many.chosen[0] == one.chosen[0]
+    for view, value in one.scores.items():
+        assert many.scores[view] == pytest.approx(value, rel=1e-12), view
+    assert sorted(many.chosen) == [10 + i for i in range(6)]  # every view once, then the pool is empty
+    assert many.fisher_views == 6 + 2 + 3  # candidates, taken, probes
+    # clock: selection start 0; three Fisher passes (1->2, 3->4, 5->6); selection end 7
+    assert many.fisher_seconds == 3.0 and many.round_seconds == 7.0 and many.seconds_per_candidate == 7.0 / 6
+
+
+@pytest.mark.parametrize("name", ["gopre", "fisherrf", "popgs"])
+def test_nothing_taken_yet_means_a_zero_train_fisher(ctx_parts, name):
+    g, pool, _, probes = ctx_parts
+    ctx = SelectionContext(g, pool[[2]], [7], pool[[]], torch.ones(3), torch.Generator(), probes)
+    sel = make_strategy(name, **({"goal": "identity"} if name == "gopre" else {})).select(ctx)
+    assert sel.chosen == [7] and torch.isfinite(torch.tensor(sel.scores[7]))
