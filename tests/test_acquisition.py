@@ -267,3 +267,11 @@ def test_nothing_taken_yet_means_a_zero_train_fisher(ctx_parts, name):
     ctx = SelectionContext(g, pool[[2]], [7], pool[[]], torch.ones(3), torch.Generator(), probes)
     sel = make_strategy(name, **({"goal": "identity"} if name == "gopre" else {})).select(ctx)
     assert sel.chosen == [7] and torch.isfinite(torch.tensor(sel.scores[7]))
+
+
+def test_a_selection_context_names_a_bad_pool(ctx_parts):
+    g, pool, taken, _ = ctx_parts
+    with pytest.raises(ValueError, match=r"^candidate_ids has 2 entries for 6 candidate cameras$"):
+        SelectionContext(g, pool, [1, 2], taken, torch.ones(3), torch.Generator())
+    with pytest.raises(ValueError, match=r"^candidates: the pool is empty$"):
+        SelectionContext(g, pool[[]], [], taken, torch.ones(3), torch.Generator())
