@@ -41,7 +41,7 @@ class ActiveNeRFStrategy:
         for step in range(self.steps):
             i = step % len(ctx.taken)
             with torch.enable_grad():
-                out = render(g, ctx.taken[i], ctx.background, settings=ctx.settings,
+                out = render(g, ctx.taken[i], settings=ctx.settings,  # only the feature channel is read
                              extra_features=torch.exp(log_var)[:, None])
                 v = out.rgb[0, ..., 3] + self.min_variance
                 nll = (residual[i] / (2 * v) + 0.5 * torch.log(v)).mean()
@@ -53,7 +53,7 @@ class ActiveNeRFStrategy:
     def rendered_variance(self, ctx: SelectionContext, cameras) -> torch.Tensor:
         """Prior rendered variance V_p of each view, [C, H, W] float64 (attribute fitted first)."""
         variance = torch.exp(self.fit_variance(ctx))
-        v = render_feature(ctx.gaussians, cameras, variance, ctx.background, ctx.settings).double()
+        v = render_feature(ctx.gaussians, cameras, variance, ctx.settings).double()
         return v + self.min_variance
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:

@@ -44,7 +44,7 @@ class GaussMIStrategy:
                 pred = render(g, cam, ctx.background, settings=ctx.settings).rgb[0]
             err = (pred - ctx.taken_images[i].to(pred)).square().mean(-1)  # [H, W]
             r = torch.exp(-err / (2 * self.error_sigma ** 2)).clamp(0.05, 0.95)
-            sums = weighted_pixel_sums(g, cam, torch.logit(r)[None], ctx.background, ctx.settings)
+            sums = weighted_pixel_sums(g, cam, torch.logit(r)[None], ctx.settings)
             bins = direction_bins(g.means, cam.centers[0])
             logits[torch.arange(len(g)), bins] += sums[:, 0].double()
         return logits
@@ -59,7 +59,7 @@ class GaussMIStrategy:
                 p = torch.sigmoid(logits[torch.arange(len(g)), direction_bins(g.means, pool.centers[i])])
                 p = p.clamp(1e-12, 1 - 1e-12)
                 entropy = -(p * torch.log2(p) + (1 - p) * torch.log2(1 - p))
-                scores[i] = render_feature(g, pool[i], entropy, ctx.background, ctx.settings).sum()
+                scores[i] = render_feature(g, pool[i], entropy, ctx.settings).sum()
             picks = torch.argsort(-scores, stable=True)[:count].tolist()
             return picks, scores
         return timed_selection(ctx, run)

@@ -2,6 +2,8 @@
 
 The rendered value of a per-Gaussian feature x is sum_g w_pg x_g, so the gradient of
 sum_p q_p * render(x)_p w.r.t. x is exactly sum_p w_pg q_p (w = alpha T, the 3DGS weights).
+Features composite over nothing (the background colour only enters the RGB channels, which these
+helpers do not read), so they take no background.
 """
 
 from __future__ import annotations
@@ -14,25 +16,25 @@ from pipeline.splat import Gaussians, RenderSettings, render
 
 
 def weighted_pixel_sums(gaussians: Gaussians, camera: Cameras, pixel_maps: Tensor,
-                        background: Tensor, settings: RenderSettings) -> Tensor:
+                        settings: RenderSettings) -> Tensor:
     """For one camera and Q per-pixel maps [Q, H, W], return [N, Q] sums sum_p w_pg q_p."""
     q = pixel_maps.shape[0]
     probe = gaussians.means.new_zeros(len(gaussians), q, requires_grad=True)
     with torch.enable_grad():
-        out = render(gaussians.detach(), camera, background, settings=settings, extra_features=probe)
+        out = render(gaussians.detach(), camera, settings=settings, extra_features=probe)
         extra = out.rgb[0, ..., 3:]  # [H, W, Q]
         (grad,) = torch.autograd.grad((extra * pixel_maps.permute(1, 2, 0)).sum(), probe)
     return grad
 
 
-def render_feature(gaussians: Gaussians, cameras: Cameras, values: Tensor, background: Tensor,
+def render_feature(gaussians: Gaussians, cameras: Cameras, values: Tensor,
                    settings: RenderSettings) -> Tensor:
     """Alpha-composite per-Gaussian values [N] (or [C, N], one row per camera) into [C, H, W]."""
     out = []
     for i in range(len(cameras)):
         v = values[i] if values.ndim == 2 else values
         with torch.no_grad():
-            r = render(gaussians.detach(), cameras[i], background, settings=settings,
+            r = render(gaussians.detach(), cameras[i], settings=settings,
                        extra_features=v[:, None].to(gaussians.means.dtype))
         out.append(r.rgb[0, ..., 3])
     return torch.stack(out)
