@@ -153,3 +153,21 @@ def test_seeds_are_a_list_of_integers_or_one_integer(value, expected):
     else:
         with pytest.raises(ConfigError, match=r"^seeds: expected a non-empty list of integers, e\.g\. seeds=\[0,1,2\], got "):
             seeds_of(cfg)
+
+
+def test_records_from_older_sweeps_and_new_folders(tmp_path):
+    """A records file written before code versions were recorded (no column, or a missing value)
+    reads as finished with version None; a records folder that does not exist yet is created; the
+    file holds exactly the rows' columns."""
+    import pandas as pd
+
+    from pipeline.experiment.records import RECORDS, RecordsFile
+    (tmp_path / "old").mkdir()
+    pd.DataFrame([{"config_hash": "a", "kind": "final", "status": "FINISHED"}]).to_parquet(tmp_path / "old" / RECORDS)
+    assert RecordsFile(tmp_path / "old").finished_versions() == {"a": None}
+    nested = RecordsFile(tmp_path / "new" / "sweep")
+    nested.add([{"config_hash": "b", "kind": "final", "status": "FINISHED", "code_version": None},
+                {"config_hash": "c", "kind": "final", "status": "FINISHED", "code_version": "v1"}])
+    again = RecordsFile(tmp_path / "new" / "sweep")
+    assert again.finished_versions() == {"b": None, "c": "v1"}
+    assert list(pd.read_parquet(again.path).columns) == ["config_hash", "kind", "status", "code_version"]
