@@ -249,7 +249,7 @@ def test_a_greedy_batch_reports_the_first_picks_scores_and_counts_its_fisher_wor
 
     from pipeline.acquisition import base
     one = make_strategy("gopre").select(make_ctx(ctx_parts), count=1)
-    ticks = iter(range(1000))
+    ticks = iter(range(100, 1000))  # not from 0: a sum instead of a difference must show
     monkeypatch.setattr(base, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
     many = make_strategy("gopre").select(make_ctx(ctx_parts), count=10)
     assert many.scores.keys() == one.scores.keys() and many.chosen[0] == one.chosen[0]
@@ -257,7 +257,7 @@ def test_a_greedy_batch_reports_the_first_picks_scores_and_counts_its_fisher_wor
         assert many.scores[view] == pytest.approx(value, rel=1e-12), view
     assert sorted(many.chosen) == [10 + i for i in range(6)]  # every view once, then the pool is empty
     assert many.fisher_views == 6 + 2 + 3  # candidates, taken, probes
-    # clock: selection start 0; three Fisher passes (1->2, 3->4, 5->6); selection end 7
+    # clock: selection start 100; three Fisher passes (101->102, 103->104, 105->106); end 107
     assert many.fisher_seconds == 3.0 and many.round_seconds == 7.0 and many.seconds_per_candidate == 7.0 / 6
 
 
