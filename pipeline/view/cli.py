@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     try:
         server, viewer = start(args.source, args.mlflow_uri, args.host, args.port, args.round)
     except (ValueError, OSError) as err:
-        print(f"pipeline-view: {args.source}: {err}", file=sys.stderr)
+        print(f"pipeline-view: {err}", file=sys.stderr)  # every error names its source
         return 1
     print(f"pipeline-view: {viewer.run.title} at http://{args.host}:{server.get_port()} (Ctrl-C stops)",
           flush=True)
