@@ -25,8 +25,9 @@ def test_round_view_counts_by_hand():
     assert round_view_counts(4, 20, 1) == tuple(range(4, 20))
     assert round_view_counts(2, 7, 2) == (2, 4, 6)  # the last round adds the one view left
     assert round_view_counts(1, 3, 1) == (1, 2)  # a single initial view is allowed
-    with pytest.raises(ValueError, match="budget"):
-        round_view_counts(4, 4, 1)
+    for bad in ((4, 4, 1), (0, 5, 1), (2, 5, 0)):  # no round, no initial view, no view per round
+        with pytest.raises(ValueError, match=r"^need 0 < initial \(\d+\) < budget \(\d+\) and views_per_round"):
+            round_view_counts(*bad)
 
 
 def test_real_scene_at_cpu_scale_by_hand():
