@@ -71,12 +71,16 @@ def test_killed_episode_resumes_to_the_uninterrupted_result(scene_dir, gopre_run
 
     with pytest.raises(Killed):
         run_episode(load(scene_dir, cfg), cfg, tmp_path, on_round=kill_after_first)
-    resumed_rounds = []
-    resumed = run_episode(load(scene_dir, cfg), cfg, tmp_path, on_round=resumed_rounds.append)
+    resumed_rounds, restored = [], []
+    resumed = run_episode(load(scene_dir, cfg), cfg, tmp_path, on_round=resumed_rounds.append,
+                          on_resume=restored.append)
     assert [r.round for r in resumed_rounds] == [1, 2]  # round 0 was not redone
+    assert restored == [1]  # the checkpoint held one finished round
     assert comparable(resumed) == comparable(uninterrupted)
     # a finished episode reloads its result without training again
-    assert comparable(run_episode(load(scene_dir, cfg), cfg, tmp_path)) == comparable(uninterrupted)
+    assert comparable(run_episode(load(scene_dir, cfg), cfg, tmp_path, on_resume=restored.append)) == \
+        comparable(uninterrupted)
+    assert restored == [1, 3]  # two selection rounds and the final evaluation
 
 
 def test_resume_under_a_different_config_is_refused(scene_dir, tmp_path):

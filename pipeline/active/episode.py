@@ -262,12 +262,14 @@ class Episode:
 def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | None = None,
                 on_round: Callable[[RoundRecord], None] | None = None,
                 progress: bool = False, device: str | torch.device | None = None,
-                on_selection: Callable[["Episode", RoundRecord], None] | None = None) -> EpisodeResult:
+                on_selection: Callable[["Episode", RoundRecord], None] | None = None,
+                on_resume: Callable[[int], None] | None = None) -> EpisodeResult:
     """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
     checkpointed), including the final one; it may raise to stop the episode. ``device``: where
     the model and images live (default CPU); records are identical in form on every device.
     ``on_selection(episode, record)`` sees the episode after each pick, before the post-selection
-    policy changes the model (it must not change the episode)."""
+    policy changes the model (it must not change the episode). ``on_resume(rounds)`` hears how many
+    finished rounds a checkpoint restored."""
     start = time.perf_counter()
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
     ep = Episode(scene, cfg, device, folder)
@@ -275,6 +277,8 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
     state = load_checkpoint(folder, key)
     if state is not None:
         ep.restore(state)
+        if on_resume is not None:
+            on_resume(len(ep.records))
     while not ep.done and len(ep.taken) < ep.views.budget:
         seconds = ep.train(cfg.epochs_per_view * len(ep.taken), progress)
         rec = ep.record(seconds)

@@ -135,12 +135,10 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
             if rec.round in pending_images:
                 message["images"] = pending_images.pop(rec.round)
             report(message)
-    saved = folder / "checkpoint" / "episode.pt"
-    if saved.exists():  # a retried, interrupted or relaunched job continues where it stopped
-        done = len(torch.load(saved, weights_only=False, map_location="cpu").get("records", []))
+    def on_resume(done: int):  # a retried, interrupted or relaunched job continues where it stopped
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
     result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round, on_selection=on_selection,
-                         device=job["execution"]["device"])
+                         device=job["execution"]["device"], on_resume=on_resume)
     if result.final["degraded"]:
         _log(folder, f"warning: final PSNR {result.final['curve_psnr_drop']:.2f} dB below the last "
                      "round's on the same views (degraded)")
