@@ -291,3 +291,13 @@ def test_paper_defaults_tau_is_one():
     assert predictive_entropy(s, f, 12).item() == pytest.approx(
         0.5 * torch.log1p(s * f).sum().item() + 6 * math.log(2 * math.pi * math.e), rel=1e-14)
 
+
+
+def test_the_parameter_layout_names_an_unknown_group():
+    from pipeline.fisher.features import PARAM_GROUPS, param_layout
+    from pipeline.splat.scenes import random_scene
+    g = random_scene(3, seed=0, sh_degree=1)
+    assert param_layout(g, ("sh0", "means")) == [("means", 3), ("sh0", 3)]  # the flattened order
+    with pytest.raises(ValueError, match=r"^unknown parameter groups \['rotation'\]; choose from "):
+        param_layout(g, ("means", "rotation"))
+    assert len(PARAM_GROUPS) == 6
