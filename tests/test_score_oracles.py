@@ -332,3 +332,13 @@ def test_activenerf_fit_follows_the_gradient_of_its_nll(setup, monkeypatch):
     monkeypatch.setattr(torch.optim, "Adam", lambda params, lr: Recording(params, lr=lr))
     make_strategy("activenerf", steps=1, init_log_var=init, min_variance=v_min).fit_variance(ctx)
     assert torch.allclose(seen[0], log_var.grad, rtol=1e-8, atol=1e-15)
+
+
+def test_a_colour_only_fisher_equals_the_brute_force_colour_entries(setup):
+    """FisherSpec without any geometric group (SH only) takes its own branch of the Jacobian."""
+    from pipeline.fisher.exact import FisherSpec, view_fisher
+    g, cams, fishers = setup
+    got = view_fisher(g, cams[[2]], BACKGROUND, FisherSpec(groups=("sh0", "shN")), SETTINGS).flatten(1)[0]
+    n = len(g)  # view_fisher is per Gaussian: [N, P] with P = sh0 then shN of that Gaussian
+    expected = torch.cat([fishers[2]["sh0"].reshape(n, -1), fishers[2]["shN"].reshape(n, -1)], 1).flatten()
+    assert torch.allclose(got, expected, rtol=1e-9, atol=1e-12)
