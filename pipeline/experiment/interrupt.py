@@ -50,15 +50,13 @@ def critical():
             raise SweepInterrupted(signum)
 
 
-def install_stop_handlers() -> dict:
+def install_stop_handlers() -> None:
     """(Re)install the handlers: Ray installs its own SIGTERM handler when it starts, so the
-    executor calls this again after ``ray.init``. Only the main thread can. Returns the previous
-    handlers (``restore_handlers``)."""
-    previous = {}
+    executor calls this again after ``ray.init``. Only the main thread can. ``current_handlers``
+    before and ``restore_handlers`` after give the caller's back."""
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
-            previous[sig] = signal.signal(sig, _raise)
-    return previous
+            signal.signal(sig, _raise)
 
 
 def current_handlers() -> dict:
