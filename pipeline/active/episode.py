@@ -69,6 +69,7 @@ class EpisodeResult:
     initial: list[int]             # ids in the pool split
     selected: list[int]            # ids in pick order
     probes: list[list[int]]        # the probe ids drawn at each round
+    pool_split: str                # the scene split the initial, selected and probe ids index
     test_split: str                # the scene split the test ids index
     test_ids: list[int]            # ids in the test split (final metrics)
     curve_ids: list[int]           # ids of the per-round curve's test views
@@ -293,7 +294,7 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
         _checkpoint(ep, folder, key, on_round, ep.records[-1])
     return EpisodeResult(str(scene.root), cfg.strategy, cfg.seed, cfg.protocol.kind,
                          list(ep.views.initial_ids), ep.taken[len(ep.views.initial_ids):],
-                         [r.probes for r in ep.records[:-1]], ep.views.test_split,
+                         [r.probes for r in ep.records[:-1]], ep.views.pool_split, ep.views.test_split,
                          list(ep.views.test_ids), ep.curve_ids, ep.records, ep.final,
                          round(time.perf_counter() - start, 2), ep.trainer.rendered_gaussians)
 

@@ -25,7 +25,6 @@ from PIL import Image
 from pipeline.active import RoundRecord, episode_plan, run_episode
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
-from pipeline.data.protocols import build_protocol
 from pipeline.data.scene import Scene
 from pipeline.experiment.build import episode_config, uncertainty_config
 from pipeline.fisher.exact import predictive_variance_maps, view_fisher
@@ -41,11 +40,15 @@ def set_threads(threads: int) -> None:
         os.environ[var] = str(threads)
 
 
+def to_uint8(image: torch.Tensor) -> np.ndarray:
+    """[H, W, 3] in [0, 1] -> uint8 array."""
+    return (image.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
 def png_bytes(image: torch.Tensor) -> bytes:
     """[H, W, 3] in [0, 1] -> PNG bytes."""
-    array = (image.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     buf = io.BytesIO()
-    Image.fromarray(array).save(buf, format="PNG")
+    Image.fromarray(to_uint8(image)).save(buf, format="PNG")
     return buf.getvalue()
 
 
@@ -88,8 +91,7 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     with torch.no_grad():
         renders = render(g, cams, bg).rgb.clamp(0, 1)
     taken = ep.pool.cameras[[i for i in ep.taken if i not in set(rec.selected)]]
-    s = posterior_variance(view_fisher(g, taken, bg).sum(0), ROUND_IMAGE_LAMBDA)
-    maps = predictive_variance_maps(g, cams, s, bg).sum(-1)
+    maps = variance_maps(g, bg, taken, cams)
     out = {}
     for i, view in enumerate(views):
         out[f"render_test_{view:04d}"] = png_bytes(renders[i])
@@ -99,13 +101,18 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     return out
 
 
+def variance_maps(g, background: torch.Tensor, taken, cams) -> torch.Tensor:
+    """Per-pixel predictive variance [C, H, W] of ``cams`` (sum over channels) under
+    S = 1 / (H_train + lambda) of the ``taken`` views."""
+    s = posterior_variance(view_fisher(g, taken, background).sum(0), ROUND_IMAGE_LAMBDA)
+    return predictive_variance_maps(g, cams, s, background).sum(-1)
+
+
 def uncertainty_rows(g, background: torch.Tensor, taken, cams, truth: torch.Tensor,
                      preds: torch.Tensor) -> list[torch.Tensor]:
     """One [H, 4W, 3] row per view of ``cams``: ground truth | render | squared error | per-pixel
-    predictive variance (sum over channels, S = 1 / (H_train + lambda) of the ``taken`` views),
-    the error and the variance each on its own colour scale."""
-    s = posterior_variance(view_fisher(g, taken, background).sum(0), ROUND_IMAGE_LAMBDA)
-    maps = predictive_variance_maps(g, cams, s, background).sum(-1)
+    predictive variance of the ``taken`` views' posterior, each map on its own colour scale."""
+    maps = variance_maps(g, background, taken, cams)
     return [uncertainty_row(truth[i], preds[i], maps[i].to(preds)) for i in range(len(cams))]
 
 
@@ -154,8 +161,7 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts)
-    pool = scene.split(build_protocol(scene, cfg.protocol).pool_split)
-    taken = pool.cameras[result.initial + result.selected]
+    taken = scene.split(result.pool_split).cameras[result.initial + result.selected]
     rows = uncertainty_rows(result.gaussians, background, taken, views.cameras[shown], truth, preds)
     for view, row in zip(shown, rows):
         artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)

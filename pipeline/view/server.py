@@ -19,6 +19,7 @@ import torch
 
 from pipeline.data.manifolds import SectorManifold
 from pipeline.data.protocols import resolved_manifold
+from pipeline.experiment.job import colormap, to_uint8
 from pipeline.fisher.exact import predictive_variance_maps, view_fisher
 from pipeline.fisher.posterior import posterior_variance
 from pipeline.splat import render
@@ -39,18 +40,6 @@ class CameraKey:
     @property
     def label(self) -> str:
         return f"{self.split} {self.index}"
-
-
-def colormap(values: np.ndarray) -> np.ndarray:
-    """[H, W] non-negative -> [H, W, 3] uint8, black -> red -> yellow -> white at the 99th percentile."""
-    top = max(float(np.quantile(values, 0.99)), 1e-12)
-    v = np.clip(values / top, 0, 1)
-    rgb = np.stack([np.clip(3 * v, 0, 1), np.clip(3 * v - 1, 0, 1), np.clip(3 * v - 2, 0, 1)], -1)
-    return (rgb * 255 + 0.5).astype(np.uint8)
-
-
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    return (image.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
 
 def enlarged(image: np.ndarray, width: int = 256) -> np.ndarray:
@@ -320,7 +309,7 @@ class EpisodeViewer:
             variance = predictive_variance_maps(g, cams, self.variance(), background)[0].sum(-1)
             self.image_truth.image = enlarged(to_uint8(split.images[key.index]))
             self.image_render.image = enlarged(to_uint8(image))
-            self.image_variance.image = enlarged(colormap(variance.double().cpu().numpy()))
+            self.image_variance.image = enlarged(to_uint8(colormap(variance)))
             role = ""
             if key.split == "pool":
                 role = camera_roles(run, self.state, self.goal)[key.index][1]
