@@ -301,3 +301,24 @@ def test_the_parameter_layout_names_an_unknown_group():
     with pytest.raises(ValueError, match=r"^unknown parameter groups \['rotation'\]; choose from "):
         param_layout(g, ("means", "rotation"))
     assert len(PARAM_GROUPS) == 6
+
+
+def test_the_feature_jacobian_checks_its_block_shapes():
+    """The geometry block is [N, 8, Q] with Q the selected geometric width (0 for colour only):
+    both backends build it so, and a block of another shape is refused by name."""
+    from pipeline.fisher.features import FeatureJacobian, feature_jacobian, feature_jacobian_compiled
+    from pipeline.splat import compiled
+    g = random_scene(4, seed=1, sh_degree=1)
+    cams = orbit_cameras(1, 64, 48)
+    backends = [feature_jacobian] + ([feature_jacobian_compiled] if compiled.load() is not None else [])
+    for jacobian in backends:
+        for groups, q in ((("sh0", "shN"), 0), (("means", "logit_opacities"), 3), (("quats", "log_scales"), 7)):
+            a = jacobian(g, cams.viewmats[0], cams.Ks[0], 64, 48, groups)
+            assert tuple(a.geometry.shape) == (4, 8, q), (jacobian.__name__, groups)
+            assert tuple(a.dense().shape) == (4, 9, sum(w for _, w in a.layout)), (jacobian.__name__, groups)
+    with pytest.raises(ValueError, match=r"geometry block has shape \(4, 9, 0\), expected \[N, 8, Q\] = \(4, 8, 0\)"):
+        FeatureJacobian([("sh0", 3)], torch.zeros(4, 9, 0), a.opacity_slope, a.sh_slope)
+    with pytest.raises(ValueError, match=r"geometry block has shape \(4, 8, 3\), expected .* = \(4, 8, 4\)"):
+        FeatureJacobian([("quats", 4)], torch.zeros(4, 8, 3), a.opacity_slope, a.sh_slope)
+    with pytest.raises(ValueError, match=r"SH slope has shape \(3, 4, 3\), expected \[N=4, K, 3\]"):
+        FeatureJacobian([("sh0", 3)], torch.zeros(4, 8, 0), a.opacity_slope, a.sh_slope[:3])

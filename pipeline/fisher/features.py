@@ -55,6 +55,16 @@ class FeatureJacobian:
     opacity_slope: Tensor
     sh_slope: Tensor
 
+    def __post_init__(self):
+        n = self.opacity_slope.shape[0]
+        q = sum(w for g, w in self.layout if g in GEOMETRIC)
+        if tuple(self.geometry.shape) != (n, len(GEOMETRIC_ROWS), q):
+            raise ValueError(f"feature Jacobian geometry block has shape {tuple(self.geometry.shape)}, "
+                             f"expected [N, 8, Q] = {(n, len(GEOMETRIC_ROWS), q)} for layout {self.layout}")
+        if self.sh_slope.shape[0] != n or self.sh_slope.shape[2] != 3:
+            raise ValueError(f"feature Jacobian SH slope has shape {tuple(self.sh_slope.shape)}, "
+                             f"expected [N={n}, K, 3]")
+
     def column_blocks(self):
         """Yield (group, its column slice in the flattened layout, its column slice in
         ``geometry`` for a geometric group else None)."""
@@ -120,7 +130,7 @@ def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: in
                                         is_grads_batched=True, allow_unused=True, materialize_grads=True)
             geometry = torch.cat([gr.reshape(8, n, -1) for gr in grads], dim=2).transpose(0, 1)
         else:
-            geometry = params["means"].new_zeros(n, 8, 0)
+            geometry = params["means"].new_zeros(n, len(GEOMETRIC_ROWS), 0)
     degree = gaussians.sh_degree if sh_degree is None else sh_degree
     basis = torch.stack(sh_basis(degree, view_directions(params["means"], viewmat)), dim=1)  # [N, k]
     slope = basis.new_zeros(n, gaussians.shN.shape[1] + 1, 3)
@@ -148,5 +158,5 @@ def feature_jacobian_compiled(gaussians: Gaussians, viewmat: Tensor, K: Tensor, 
         int(width), int(height), int(degree), float(near), compiled.use_threads()))
     columns = [_KERNEL_COLUMNS[g] for g, _ in layout if g in GEOMETRIC]
     geometry = torch.cat([geometry[:, :, c] for c in columns], dim=2) if columns else \
-        geometry.new_zeros(geometry.shape[0], 8, 0)
+        geometry.new_zeros(geometry.shape[0], len(GEOMETRIC_ROWS), 0)
     return FeatureJacobian(layout, geometry, opacity_slope, sh_slope)
