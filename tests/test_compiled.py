@@ -262,7 +262,7 @@ def test_compiled_feature_jacobian_matches_autograd(sh_degree):
     from pipeline.fisher.features import feature_jacobian, feature_jacobian_compiled
     g, cams = projection_cases()
     for groups in (PARAM_GROUPS, ("means", "quats", "sh0")):
-        args = (g, cams.viewmats[0], cams.Ks[0], 60, 50, groups, sh_degree)
+        args = (g, cams.viewmats[0], cams.Ks[0], 60, 50, groups, sh_degree, 0.01)
         a, b = feature_jacobian_compiled(*args).dense(), feature_jacobian(*args).dense()
         assert a.shape == b.shape
         assert rel(a, b) < 1e-10, groups

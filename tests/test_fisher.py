@@ -313,7 +313,7 @@ def test_the_feature_jacobian_checks_its_block_shapes():
     backends = [feature_jacobian] + ([feature_jacobian_compiled] if compiled.load() is not None else [])
     for jacobian in backends:
         for groups, q in ((("sh0", "shN"), 0), (("means", "logit_opacities"), 3), (("quats", "log_scales"), 7)):
-            a = jacobian(g, cams.viewmats[0], cams.Ks[0], 64, 48, groups)
+            a = jacobian(g, cams.viewmats[0], cams.Ks[0], 64, 48, groups, None, 0.01)
             assert tuple(a.geometry.shape) == (4, 8, q), (jacobian.__name__, groups)
             assert tuple(a.dense().shape) == (4, 9, sum(w for _, w in a.layout)), (jacobian.__name__, groups)
     with pytest.raises(ValueError, match=r"geometry block has shape \(4, 9, 0\), expected \[N, 8, Q\] = \(4, 8, 0\)"):

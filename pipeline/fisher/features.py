@@ -86,7 +86,7 @@ class FeatureJacobian:
         colour = torch.diagonal(G[:, COLOUR_ROWS, COLOUR_ROWS], dim1=1, dim2=2)  # [N, 3]
         rows = list(GEOMETRIC_ROWS)
         geo = self.geometry.to(G.dtype)
-        geo_f = ((G[:, rows][:, :, rows] @ geo) * geo).sum(1) if geo.shape[2] else None  # [N, Q]
+        geo_f = ((G[:, rows][:, :, rows] @ geo) * geo).sum(1)  # [N, Q] (Q = 0: no geometric group)
         out = []
         for group, _, geo_cols in self.column_blocks():
             if geo_cols is not None:
@@ -113,8 +113,7 @@ class FeatureJacobian:
         return A
 
 def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
-                     groups: tuple[str, ...], sh_degree: int | None = None,
-                     near: float = 0.01) -> FeatureJacobian:
+                     groups: tuple[str, ...], sh_degree: int | None, near: float) -> FeatureJacobian:
     """A = d features / d raw parameters of one view for the selected raw parameter groups."""
     layout = param_layout(gaussians, groups)
     geometric = [g for g, _ in layout if g in GEOMETRIC]
@@ -127,7 +126,7 @@ def feature_jacobian(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: in
             feats = torch.cat([proj.means2d, proj.conics, proj.colors], dim=1)  # [N, 8]
             selectors = torch.eye(8, dtype=feats.dtype, device=feats.device)[:, None, :].expand(-1, n, -1)
             grads = torch.autograd.grad(feats, [leaves[g] for g in geometric], selectors,
-                                        is_grads_batched=True, allow_unused=True, materialize_grads=True)
+                                        is_grads_batched=True)
             geometry = torch.cat([gr.reshape(8, n, -1) for gr in grads], dim=2).transpose(0, 1)
         else:
             geometry = params["means"].new_zeros(n, len(GEOMETRIC_ROWS), 0)
@@ -144,8 +143,8 @@ _KERNEL_COLUMNS = {"means": slice(0, 3), "log_scales": slice(3, 6), "quats": sli
 
 
 def feature_jacobian_compiled(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int,
-                              height: int, groups: tuple[str, ...], sh_degree: int | None = None,
-                              near: float = 0.01) -> FeatureJacobian:
+                              height: int, groups: tuple[str, ...], sh_degree: int | None,
+                              near: float) -> FeatureJacobian:
     """``feature_jacobian`` by the compiled kernel (hand-written chain rule, float64), CPU only."""
     from pipeline.splat import compiled
     from pipeline.splat.project_kernels import feature_jacobian as kernel
