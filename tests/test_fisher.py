@@ -117,16 +117,31 @@ def test_posterior_rejects_bad_lambda():
         posterior_variance(torch.ones(3), 0.0)
 
 
-def test_predictive_variance_map_matches_dense_jacobian():
+@pytest.mark.parametrize("groups", [None, ("means", "sh0"), ("quats", "logit_opacities")])
+def test_predictive_variance_map_matches_dense_jacobian(groups):
+    """sum_p J_p^2 S_p per pixel and channel, for all groups and for subsets whose width P is
+    below N (the covariance is per Gaussian, the spec's groups are the ones S covers)."""
     from pipeline.fisher.exact import predictive_variance_maps
     g = random_scene(20, seed=9, dtype=F64, sh_degree=1, opacity_range=(0.3, 0.999))
     cams = orbit_cameras(1, 10, 9, dtype=F64, radius=2.4)
-    groups = tuple(g.params())
-    J = torch.cat(jacobians(g, cams, groups), dim=2)  # [270, N, P]
+    spec = FisherSpec() if groups is None else FisherSpec(groups=groups)
+    J = torch.cat(jacobians(g, cams, spec.groups), dim=2)  # [270, N, P]
     s = torch.rand(20, J.shape[2], generator=torch.Generator().manual_seed(1), dtype=F64) + 0.1
     brute = (J.square() * s).sum((1, 2)).reshape(9, 10, 3)
-    ours = predictive_variance_maps(g, cams, s, BG, settings=SETTINGS)[0]
+    ours = predictive_variance_maps(g, cams, s, BG, spec, SETTINGS)[0]
     assert ((ours - brute).norm() / brute.norm()).item() < 1e-10
+    # the map is the torch walk's whatever backend the caller renders with (compiled or not)
+    auto = predictive_variance_maps(g, cams, s, BG, spec, RenderSettings(tile_size=16))[0]
+    assert ((auto - brute).norm() / brute.norm()).item() < 1e-10
+
+
+def test_render_settings_name_an_unknown_backend():
+    """Checked where the settings are made (a config, or the variance maps' own tile walk), so the
+    renderer, the Fisher walk and the maps cannot run an unknown backend as the torch walk."""
+    for name in ("XXtilesXX", "TILES", None, "dens"):
+        with pytest.raises(ValueError, match=r"^backend must be one of \['auto', 'compiled', 'tiles', 'dense', 'loop'\], got "):
+            RenderSettings(backend=name)
+    assert RenderSettings(backend="loop").backend == "loop"
 
 
 def test_predictive_entropy_parameter_form_equals_output_form_for_diagonal_fisher():

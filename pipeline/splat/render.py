@@ -42,6 +42,10 @@ class RenderSettings:
     backend: str = "auto"
     dense_pixel_block: int | None = None  # dense oracle only: checkpointed pixel blocks
 
+    def __post_init__(self):
+        if self.backend not in BACKEND_NAMES:
+            raise ValueError(f"backend must be one of {list(BACKEND_NAMES)}, got {self.backend!r}")
+
 
 def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
            sh_degree: int | None = None, settings: RenderSettings = RenderSettings(),
@@ -54,8 +58,6 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
     """
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot render an empty scene (N = 0)")
-    if settings.backend not in BACKEND_NAMES:
-        raise ValueError(f"backend must be one of {list(BACKEND_NAMES)}, got {settings.backend!r}")
     gaussians.validate()
     backend = resolve_backend(settings.backend, gaussians.means.device)
     composite = BACKENDS[backend]
