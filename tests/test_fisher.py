@@ -1,6 +1,7 @@
 """Exact diagonal Fisher against brute-force Jacobians, and the posterior/score identities."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -16,22 +17,22 @@ BG = torch.tensor([0.3, 0.6, 0.9], dtype=F64)
 SETTINGS = RenderSettings(tile_size=4, chunk=5)
 
 
-def jacobians(g, cams, groups):
+def jacobians(g, cams, groups, settings=SETTINGS):
     """Per group, the dense Jacobian [pixels*channels, N, p] of all cameras' RGB (stacked)."""
     names = list(g.params())
 
     def fn(*sel):
         params = dict(g.params())
         params.update(dict(zip(groups, sel)))
-        return render(Gaussians(**params), cams, BG, settings=SETTINGS).rgb.reshape(-1)
+        return render(Gaussians(**params), cams, BG, settings=settings).rgb.reshape(-1)
     jac = torch.autograd.functional.jacobian(fn, tuple(g.params()[k] for k in groups))
     n = len(g)
     assert set(groups) <= set(names)
     return [j.reshape(j.shape[0], n, -1) for j in jac]
 
 
-def brute_fisher(g, cams, groups):
-    return torch.cat([j.square().sum(0) for j in jacobians(g, cams, groups)], dim=1)
+def brute_fisher(g, cams, groups, settings=SETTINGS):
+    return torch.cat([j.square().sum(0) for j in jacobians(g, cams, groups, settings)], dim=1)
 
 
 @pytest.mark.parametrize("seed,opacity", [(0, (0.3, 0.9)), (1, (0.6, 0.999)), (2, (0.05, 0.3)),
@@ -74,6 +75,44 @@ def test_fisher_is_zero_for_gaussians_no_pixel_sees():
     cams = orbit_cameras(1, 12, 12, dtype=F64, radius=2.4)
     f = view_fisher(g, cams, BG, settings=SETTINGS)[0]
     assert (f[:3] == 0).all() and (f[3:].sum(1) > 0).any()
+
+
+def test_fisher_over_more_tiles_than_one_walk_block():
+    """A 26x22 view at tile size 2 has 143 tiles: the walk's blocks of 64 tiles each count once."""
+    g = random_scene(12, seed=12, dtype=F64, sh_degree=1, scale_range=(0.15, 0.4))
+    cams = orbit_cameras(1, 26, 22, dtype=F64, radius=2.4)
+    groups = ("means", "logit_opacities", "sh0")
+    fine = RenderSettings(tile_size=2, chunk=4, backend="tiles")  # the torch walk has the blocks
+    ours = view_fisher(g, cams, BG, FisherSpec(groups), fine)[0]
+    ref = brute_fisher(g, cams, groups)
+    assert ((ours - ref).norm() / ref.norm()).item() < 1e-10
+
+
+def test_fisher_uses_the_settings_near_plane():
+    """A Gaussian between the default near plane (0.01) and the settings' (1.0) is culled: zero
+    Fisher, as the brute-force Jacobian of the render at that near plane says."""
+    g = random_scene(10, seed=13, dtype=F64, sh_degree=0)
+    cams = orbit_cameras(1, 12, 10, dtype=F64, radius=2.4)
+    eye = torch.linalg.inv(cams.viewmats[0])[:3, 3]
+    means = g.means.detach().clone()
+    means[0] = eye * 0.75  # 0.6 in front of the camera, on its axis towards the origin
+    g = g.replace(means=means)
+    groups = ("means", "logit_opacities", "sh0")
+    near = replace(SETTINGS, near=1.0)
+    ours = view_fisher(g, cams, BG, FisherSpec(groups), near)[0]
+    assert (ours[0] == 0).all() and (view_fisher(g, cams, BG, FisherSpec(groups), SETTINGS)[0][0] > 0).any()
+    ref = brute_fisher(g, cams, groups, near)
+    assert ((ours - ref).norm() / ref.norm()).item() < 1e-10
+
+
+def test_fisher_of_one_gaussian_and_of_none():
+    g = random_scene(1, seed=14, dtype=F64, sh_degree=1, scale_range=(0.5, 0.8))
+    cams = orbit_cameras(1, 9, 8, dtype=F64, radius=2.4)
+    ours = view_fisher(g, cams, BG, FisherSpec(), SETTINGS)[0]
+    ref = brute_fisher(g, cams, FisherSpec().groups)
+    assert ref.abs().sum() > 0 and ((ours - ref).norm() / ref.norm()).item() < 1e-10
+    with pytest.raises(ValueError, match=r"^gaussians: cannot compute the Fisher of an empty scene$"):
+        view_fisher(g.index(torch.zeros(1, dtype=torch.bool)), cams, BG, FisherSpec(), SETTINGS)
 
 
 def test_determinant_lemma_output_space_equals_parameter_space():

@@ -195,7 +195,7 @@ def _channel_sum_of_squares(s: Tensor) -> Tensor:
     return torch.addcmul(torch.addcmul(c0 * c0, c1, c1), c2, c2)
 
 
-def feature_fisher(walk: ViewWalk, channel_summed: bool = False) -> tuple[Tensor, Tensor]:
+def feature_fisher(walk: ViewWalk, channel_summed: bool) -> tuple[Tensor, Tensor]:
     """(seen [M], G [M, 9, 9] float64): the Gaussians the walk reached (sorted ids) and for each
     the sum over pixels and channels of d I / d features outer products (every other Gaussian
     has G = 0). ``channel_summed``: the outer products of the channel-summed derivative
@@ -284,7 +284,7 @@ _UPPER = [(a, b) for a in range(6) for b in range(a, 6)]
 
 
 def feature_fisher_compiled(proj, width: int, height: int, background: Tensor,
-                            tile_size: int, channel_summed: bool = False) -> tuple[Tensor, Tensor]:
+                            tile_size: int, channel_summed: bool) -> tuple[Tensor, Tensor]:
     """``feature_fisher`` by the compiled walk: (seen [M], G [M, 9, 9] float64).
 
     The kernel sums, per walked intersection, S h h^T, s_c w h and w^2 at each pixel's own offset
