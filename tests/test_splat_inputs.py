@@ -120,3 +120,20 @@ def test_each_backend_projects_with_its_own_projector(monkeypatch):
     calls.clear()
     render(good(), cams, settings=RenderSettings(backend="tiles"))
     assert calls == ["project"] * 2
+
+
+def test_render_passes_the_settings_performance_knobs_to_its_compositor(monkeypatch):
+    """Tile size, chunk and the dense pixel block never change a value (tested elsewhere), so only
+    the compositor's arguments show that a render honours them."""
+    import importlib
+    render_module = importlib.import_module("pipeline.splat.render")
+    seen = {}
+    for name, fn in list(render_module.BACKENDS.items()):
+        monkeypatch.setitem(render_module.BACKENDS, name,
+                            lambda *a, _f=fn, _n=name, **kw: seen.setdefault(_n, kw) and _f(*a, **kw))
+    cams = orbit_cameras(1, 8, 8)
+    render(good(), cams, settings=RenderSettings(backend="tiles", tile_size=4, chunk=5))
+    render(good(), cams, settings=RenderSettings(backend="dense", tile_size=4, dense_pixel_block=7))
+    render(good(), cams, settings=RenderSettings(backend="loop", tile_size=2))
+    assert seen == {"tiles": {"tile_size": 4, "chunk": 5}, "dense": {"tile_size": 4, "pixel_block": 7},
+                    "loop": {"tile_size": 2}}
