@@ -405,3 +405,11 @@ def test_the_feature_jacobian_checks_its_block_shapes():
         FeatureJacobian([("quats", 4)], torch.zeros(4, 8, 3), a.opacity_slope, a.sh_slope)
     with pytest.raises(ValueError, match=r"SH slope has shape \(3, 4, 3\), expected \[N=4, K, 3\]"):
         FeatureJacobian([("sh0", 3)], torch.zeros(4, 8, 0), a.opacity_slope, a.sh_slope[:3])
+
+
+def test_the_fisher_takes_cameras_to_the_gaussians_dtype():
+    g = random_scene(8, seed=24, dtype=F64)
+    cams = orbit_cameras(1, 8, 8)  # float32, as the loaders give them
+    spec = FisherSpec(("means", "sh0"))
+    assert torch.equal(view_fisher(g, cams, BG, spec, SETTINGS),
+                       view_fisher(g, cams.to(dtype=F64), BG, spec, SETTINGS))

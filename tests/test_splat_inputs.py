@@ -137,3 +137,14 @@ def test_render_passes_the_settings_performance_knobs_to_its_compositor(monkeypa
     render(good(), cams, settings=RenderSettings(backend="loop", tile_size=2))
     assert seen == {"tiles": {"tile_size": 4, "chunk": 5}, "dense": {"tile_size": 4, "pixel_block": 7},
                     "loop": {"tile_size": 2}}
+
+
+@pytest.mark.parametrize("backend", ["tiles", "dense", "auto"])
+def test_cameras_are_taken_to_the_gaussians_dtype(backend):
+    """float32 cameras (the loaders' dtype) render float64 Gaussians as the same cameras in float64."""
+    g = random_scene(6, seed=3, dtype=torch.float64)
+    cams = orbit_cameras(1, 8, 8)
+    settings = RenderSettings(backend=backend)
+    out = render(g, cams, settings=settings).rgb
+    assert out.dtype == torch.float64
+    assert torch.equal(out, render(g, cams.to(dtype=torch.float64), settings=settings).rgb)
