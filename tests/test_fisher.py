@@ -407,9 +407,10 @@ def test_the_feature_jacobian_checks_its_block_shapes():
         FeatureJacobian([("sh0", 3)], torch.zeros(4, 8, 0), a.opacity_slope, a.sh_slope[:3])
 
 
-def test_the_fisher_takes_cameras_to_the_gaussians_dtype():
+@pytest.mark.parametrize("backend", ["tiles", "auto"])
+def test_the_fisher_takes_cameras_to_the_gaussians_dtype(backend):
     g = random_scene(8, seed=24, dtype=F64)
     cams = orbit_cameras(1, 8, 8)  # float32, as the loaders give them
-    spec = FisherSpec(("means", "sh0"))
-    assert torch.equal(view_fisher(g, cams, BG, spec, SETTINGS),
-                       view_fisher(g, cams.to(dtype=F64), BG, spec, SETTINGS))
+    spec, settings = FisherSpec(("means", "sh0")), replace(SETTINGS, backend=backend)
+    assert torch.equal(view_fisher(g, cams, BG, spec, settings),
+                       view_fisher(g, cams.to(dtype=F64), BG, spec, settings))
