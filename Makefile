@@ -40,11 +40,14 @@ e2e: $(STAMP)
 # oracle tests); resumable. The mutated modules are the torch path, so the compiled backend is off
 # here (mutmut forks its workers, and the torch path is the oracle the compiled kernels are tested
 # against in tests/test_compiled.py); `$(BIN)/mutmut results` lists the survivors, `mutmut show NAME` one diff.
+# All modules take hours on 2 cores; MUTANTS narrows the run to mutant-name globs and re-runs them,
+# e.g. `make mutate MUTANTS='pipeline.splat.project.x_conic_2d*'`.
+MUTANTS ?=
 mutate: $(STAMP)
 	$(BIN)/pip install -q 'mutmut==3.8.1'
 	GOPRE_SHARED_DATA=$(abspath ../shared/data) GOPRE_TEST_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
 		GOPRE_DISABLE_COMPILED=1 \
-		$(BIN)/mutmut run --max-children 2
+		$(BIN)/mutmut run --max-children 2 $(MUTANTS)
 	$(BIN)/python tools/mutation_summary.py
 
 bench: $(STAMP)
