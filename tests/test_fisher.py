@@ -103,6 +103,16 @@ def test_fisher_uses_the_settings_near_plane():
     assert (ours[0] == 0).all() and (view_fisher(g, cams, BG, FisherSpec(groups), SETTINGS)[0][0] > 0).any()
     ref = brute_fisher(g, cams, groups, near)
     assert ((ours - ref).norm() / ref.norm()).item() < 1e-10
+    # and a near plane below the default: a tiny Gaussian 0.005 in front of the eye is seen
+    forward = -eye / eye.norm()
+    means[0] = eye + 0.005 * forward + torch.tensor([2e-4, 1e-4, 0.0], dtype=F64)
+    log_scales = g.log_scales.detach().clone()
+    log_scales[0] = math.log(2e-4)
+    g = g.replace(means=means, log_scales=log_scales)
+    close = replace(SETTINGS, near=0.001, backend="tiles")
+    ours = view_fisher(g, cams, BG, FisherSpec(groups), close)[0]
+    ref = brute_fisher(g, cams, groups, close)
+    assert (ours[0] > 0).all() and ((ours - ref).norm() / ref.norm()).item() < 1e-10
 
 
 def test_fisher_of_one_gaussian_and_of_none():
