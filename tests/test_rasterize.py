@@ -153,3 +153,22 @@ def test_checkpointed_dense_oracle_equals_plain_dense():
     ((out.rgb * w).square().sum() + out.alpha.sum() + 0.1 * out.depth.sum()).backward()
     assert rel(out.rgb, plain.rgb) < 1e-14
     assert rel(gg.means.grad, plain_grads["means"]) < 1e-12
+
+
+def test_gaussians_at_equal_depth_composite_in_index_order():
+    """Ties in depth keep the lower index in front (a stable order), as the literal loop composites
+    them: 64 overlapping Gaussians all at depth 2, each its own colour."""
+    gen = torch.Generator().manual_seed(5)
+    n = 64
+    means2d = torch.rand(n, 2, generator=gen, dtype=F64) * 4 + 6
+    conics = torch.tensor([0.05, 0.0, 0.05], dtype=F64).repeat(n, 1)
+    opacities = torch.rand(n, generator=gen, dtype=F64) * 0.3 + 0.2
+    colours = torch.rand(n, 3, generator=gen, dtype=F64)
+    radii = torch.full((n,), 12, dtype=torch.int64)
+    depths = torch.full((n,), 2.0, dtype=F64)
+    args = (means2d, conics, opacities, colours, radii, depths, 16, 16)
+    loop_image, _ = rasterize_loop(*args, tile_size=4)
+    tiles_image, _ = rasterize(*args, tile_size=4)
+    reversed_image, _ = rasterize_loop(*(x.flip(0) for x in args[:6]), 16, 16, tile_size=4)
+    assert (loop_image - reversed_image).abs().max() > 1e-3  # the order shows in the image
+    assert (tiles_image - loop_image).abs().max() < 1e-12
