@@ -1,6 +1,7 @@
 """Per-module mutation score from mutmut's result files (mutants/**/*.py.meta).
 
-    .venv/bin/python tools/mutation_summary.py          # after `make mutate`
+    .venv/bin/python tools/mutation_summary.py              # after `make mutate`
+    .venv/bin/python tools/mutation_summary.py --survivors  # and each survivor's changed line
 
 Score = killed / (killed + survived + timeout + suspicious); mutants in functions that no selected
 test calls ("no tests") are counted separately, not in the score.
@@ -9,6 +10,7 @@ test calls ("no tests") are counted separately, not in the score.
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 from collections import Counter
 from pathlib import Path
@@ -29,6 +31,22 @@ def summary(root: Path = Path("mutants")) -> list[dict]:
     return rows
 
 
+def survivors(root: Path = Path("mutants")) -> list[str]:
+    """Names of the surviving mutants, module by module."""
+    names = []
+    for meta in sorted(root.rglob("*.py.meta")):
+        codes = json.loads(meta.read_text())["exit_code_by_key"]
+        names += sorted(k for k, c in codes.items() if c in SURVIVED)
+    return names
+
+
+def changed_lines(name: str) -> str:
+    """The survivor's diff as '- old / + new' lines (``mutmut show``)."""
+    diff = subprocess.run([sys.executable, "-m", "mutmut", "show", name], capture_output=True,
+                          text=True).stdout.splitlines()
+    return "\n".join(line for line in diff if line[:1] in "-+" and line[:3] not in ("---", "+++"))
+
+
 def main() -> int:
     rows = summary()
     if not rows:
@@ -39,6 +57,9 @@ def main() -> int:
     for r in rows:
         print(f"| {r['module']} | {r.get('killed', 0)} | {r.get('survived', 0)} | {r.get('other', 0)} | "
               f"{r.get('no tests', 0)} | {r.get('not checked', 0)} | {r['score']} |")
+    if "--survivors" in sys.argv[1:]:
+        for name in survivors():
+            print(f"\n{name}\n{changed_lines(name)}")
     return 0
 
 
