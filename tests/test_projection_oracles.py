@@ -285,3 +285,31 @@ def test_from_points_defaults_and_to_dtype():
     g64 = g.to(dtype=F64)
     assert all(v.dtype == F64 for v in g64.params().values())
     assert torch.equal(g64.means, points.double())
+
+
+@pytest.mark.parametrize("backend", ["tiles", "compiled"])
+def test_a_gaussian_whose_square_only_touches_the_image_edge_is_culled(backend):
+    """gsplat's rule: drawn iff u + r > 0, u - r < W, v + r > 0, v - r < H (r the integer radius).
+    Off-axis past the 1.3 half-FOV clamp the radius no longer depends on the position, so a square
+    can be put exactly on each edge (culled) and half a pixel inside it (drawn)."""
+    from pipeline.splat import compiled
+    if backend == "compiled" and compiled.load() is None:
+        pytest.skip(f"compiled backend unavailable: {compiled.load_error()}")
+    projector = compiled.project_compiled if backend == "compiled" else project
+    K = torch.tensor([[8.0, 0, 0], [0, 8.0, 0], [0, 0, 1]], dtype=F64)  # principal point at a corner
+    size = 16
+
+    def radius_at(u, v):
+        g = Gaussians(torch.tensor([[u / 8, v / 8, 1.0]], dtype=F64), torch.full((1, 3), math.log(0.6), dtype=F64),
+                      torch.tensor([[1.0, 0, 0, 0]], dtype=F64), torch.zeros(1, dtype=F64),
+                      torch.zeros(1, 1, 3, dtype=F64), torch.zeros(1, 0, 3, dtype=F64))
+        proj = projector(g, torch.eye(4, dtype=F64), K, size, size, None, 0.01)
+        assert proj.means2d[0].tolist() == [u, v]
+        return int(proj.radii[0])
+
+    r = radius_at(14.0, 14.0)  # on the image, both clamped (|u|, |v| > 1.3 * 8 px)
+    assert r > 11
+    for u, v in ((size + r, -r + 0.5), (-r, size + r - 0.5), (size + r - 0.5, -r), (-r + 0.5, size + r)):
+        assert radius_at(float(u), float(v)) == 0, (u, v)  # one side exactly on an edge
+    for u, v in ((size + r - 0.5, -r + 0.5), (-r + 0.5, size + r - 0.5)):
+        assert radius_at(float(u), float(v)) == r, (u, v)  # half a pixel inside on both
