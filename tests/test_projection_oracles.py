@@ -101,6 +101,14 @@ def test_quat_to_rotmat_is_a_rotation_and_matches_scipy():
     torch.testing.assert_close(rot, torch.from_numpy(scipy_rot), rtol=0, atol=1e-12)
 
 
+def test_quat_to_rotmat_takes_any_batch_shape():
+    quats = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(1), dtype=F64)
+    rot = quat_to_rotmat(quats)
+    assert rot.shape == (2, 3, 3, 3)
+    torch.testing.assert_close(rot.reshape(6, 3, 3), quat_to_rotmat(quats.reshape(6, 4)), rtol=0, atol=0)
+    torch.testing.assert_close(quat_to_rotmat(quats[1, 2]), rot[1, 2], rtol=0, atol=0)  # one quaternion [4]
+
+
 @pytest.mark.parametrize("quat,matrix", [
     ((1, 0, 0, 0), [[1, 0, 0], [0, 1, 0], [0, 0, 1]]),
     ((math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)), [[0, -1, 0], [1, 0, 0], [0, 0, 1]]),  # +90 deg about z

@@ -155,7 +155,7 @@ def all_finite(tensors: list[Tensor]) -> bool:
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices [N, 3, 3] from quaternions [N, 4] in (w, x, y, z) order (normalised here)."""
+    """Rotation matrices [..., 3, 3] from quaternions [..., 4] in (w, x, y, z) order (normalised here)."""
     q = torch.nn.functional.normalize(quats, dim=-1)
     w, x, y, z = q.unbind(-1)
     return torch.stack([
