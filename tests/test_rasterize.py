@@ -172,3 +172,22 @@ def test_gaussians_at_equal_depth_composite_in_index_order():
     reversed_image, _ = rasterize_loop(*(x.flip(0) for x in args[:6]), 16, 16, tile_size=4)
     assert (loop_image - reversed_image).abs().max() > 1e-3  # the order shows in the image
     assert (tiles_image - loop_image).abs().max() < 1e-12
+
+
+def test_the_alpha_threshold_and_a_one_pixel_radius_as_the_3dgs_loop():
+    """A Gaussian of opacity 1/255 at a pixel centre is composited there as the loop does (the
+    tiles evaluate exp(log o - q), equal to the threshold up to rounding), and one of radius 1 is
+    drawn: tiles against the literal loop."""
+    from pipeline.splat.rasterize import ALPHA_MIN
+    means2d = torch.tensor([[4.5, 4.5], [10.5, 3.5], [12.5, 12.5]], dtype=F64)  # on pixel centres
+    conics = torch.tensor([[2.0, 0.0, 2.0], [0.5, 0.1, 0.4], [3.0, 0.0, 3.0]], dtype=F64)
+    opacities = torch.tensor([ALPHA_MIN, 0.6, 0.8], dtype=F64)  # alpha = opacity at the centre
+    colours = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    radii = torch.tensor([3, 4, 1])
+    args = (means2d, conics, opacities, colours, radii, torch.tensor([1.0, 2.0, 3.0], dtype=F64), 16, 16)
+    loop_image, loop_alpha = rasterize_loop(*args, tile_size=4)
+    tiles_image, tiles_alpha = rasterize(*args, tile_size=4)
+    assert loop_image[4, 4, 0].item() == pytest.approx(ALPHA_MIN, rel=1e-12)  # the threshold pixel
+    assert loop_image[12, 12, 2].item() == pytest.approx(0.8, rel=1e-12)  # the radius-1 Gaussian
+    assert (tiles_image - loop_image).abs().max() < 1e-12
+    assert (tiles_alpha - loop_alpha).abs().max() < 1e-12

@@ -132,7 +132,7 @@ def _chunk_state(phi: Tensor, psi: Tensor, trans: Tensor) -> dict:
     """Alpha and transmittance of one depth chunk for the active tiles.
 
     phi [P, 6]; psi [Ta, 6, K] (padding entries have a -inf constant term); trans [Ta, P] before
-    the chunk, 0 for pixels that already terminated. Returns alpha, one_minus, t_excl, weights
+    the chunk, 0 for pixels that already terminated. Returns alpha, t_excl, weights
     (all [Ta, P, K]), live [Ta, P, K] (composited and unclamped: d alpha / d exponent = alpha),
     trans_after [Ta, P] and ends [Ta, P] (pixels that terminate inside this chunk).
     """
@@ -154,7 +154,7 @@ def _chunk_state(phi: Tensor, psi: Tensor, trans: Tensor) -> dict:
         trans_after = trans * cum[..., -1]
     t_excl = cum / one_minus * trans.unsqueeze(-1)  # one_minus >= 0.01
     live &= t_excl > 0
-    return {"alpha": alpha, "one_minus": one_minus, "t_excl": t_excl, "weights": alpha * t_excl,
+    return {"alpha": alpha, "t_excl": t_excl, "weights": alpha * t_excl,
             "live": live, "trans_after": trans_after, "ends": ends}
 
 
