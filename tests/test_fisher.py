@@ -327,20 +327,30 @@ def test_the_fisher_background_defaults_to_black():
     assert not torch.allclose(view_fisher(g, cams, BG, spec, SETTINGS), black)  # it matters
 
 
-def test_the_fisher_runs_the_walk_its_backend_names():
-    """``compiled`` walks in the kernels (no torch walk kept), ``tiles`` keeps its ViewWalk: a
-    request for the compiled walk is not served by the torch one (equal values, 4-8x the time)."""
+def test_the_fisher_runs_the_walk_its_backend_names(monkeypatch):
+    """``compiled`` projects and walks in the kernels (no torch walk kept), ``tiles`` projects with
+    ``project`` and keeps its ViewWalk: a request for the compiled path is not served by the torch
+    one (equal values, 4-8x the time)."""
+    import importlib
+
     from pipeline.fisher.exact import ViewWalk, view_factors
     from pipeline.splat import compiled
+    exact = importlib.import_module("pipeline.fisher.exact")
+    calls = []
+    for name in ("project", "feature_jacobian", "feature_jacobian_compiled"):
+        monkeypatch.setattr(exact, name, lambda *a, _f=getattr(exact, name), _n=name: calls.append(_n) or _f(*a))
     g = random_scene(6, seed=23, dtype=F64)
     cams = orbit_cameras(1, 8, 8, dtype=F64)
     tiles = next(view_factors(g, cams, BG, FisherSpec(), replace(SETTINGS, backend="tiles")))
-    assert isinstance(tiles.walk, ViewWalk)
+    assert isinstance(tiles.walk, ViewWalk) and calls == ["project", "feature_jacobian"]
     if compiled.load() is None:
         pytest.skip(f"compiled backend unavailable: {compiled.load_error()}")
+    monkeypatch.setattr(compiled, "project_compiled",
+                        lambda *a, _f=compiled.project_compiled: calls.append("compiled") or _f(*a))
     for spec in (FisherSpec(), FisherSpec(hessian="fisherrf_released")):
+        calls.clear()
         factors = next(view_factors(g, cams, BG, spec, replace(SETTINGS, backend="compiled")))
-        assert factors.walk is None, spec
+        assert factors.walk is None and calls == ["compiled", "feature_jacobian_compiled"], spec
 
 
 def test_fisher_spec_rejects_an_unknown_hessian():
