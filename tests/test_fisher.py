@@ -341,8 +341,10 @@ def test_the_fisher_runs_the_walk_its_backend_names(monkeypatch):
         monkeypatch.setattr(exact, name, lambda *a, _f=getattr(exact, name), _n=name: calls.append(_n) or _f(*a))
     g = random_scene(6, seed=23, dtype=F64)
     cams = orbit_cameras(1, 8, 8, dtype=F64)
-    tiles = next(view_factors(g, cams, BG, FisherSpec(), replace(SETTINGS, backend="tiles")))
-    assert isinstance(tiles.walk, ViewWalk) and calls == ["project", "feature_jacobian"]
+    for spec in (FisherSpec(), FisherSpec(hessian="fisherrf_released")):
+        calls.clear()
+        tiles = next(view_factors(g, cams, BG, spec, replace(SETTINGS, backend="tiles")))
+        assert isinstance(tiles.walk, ViewWalk) and calls == ["project", "feature_jacobian"], spec
     if compiled.load() is None:
         pytest.skip(f"compiled backend unavailable: {compiled.load_error()}")
     monkeypatch.setattr(compiled, "project_compiled",
