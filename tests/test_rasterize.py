@@ -191,3 +191,19 @@ def test_the_alpha_threshold_and_a_one_pixel_radius_as_the_3dgs_loop():
     assert loop_image[12, 12, 2].item() == pytest.approx(0.8, rel=1e-12)  # the radius-1 Gaussian
     assert (tiles_image - loop_image).abs().max() < 1e-12
     assert (tiles_alpha - loop_alpha).abs().max() < 1e-12
+
+
+def test_a_gaussian_is_composited_inside_its_square_only():
+    """The radius bounds where a Gaussian is drawn (tiles touched by the square of side 2r), even
+    where its alpha beyond would be large: a wide Gaussian (sigma 10 px) given radius 2 lights the
+    tiles of [u - 2, u + 2] x [v - 2, v + 2] only, as the literal loop says."""
+    means2d = torch.tensor([[5.2, 9.7]], dtype=F64)
+    conics = torch.tensor([[0.01, 0.0, 0.01]], dtype=F64)
+    args = (means2d, conics, torch.tensor([0.9], dtype=F64), torch.ones(1, 3, dtype=F64),
+            torch.tensor([2]), torch.tensor([1.0], dtype=F64), 16, 16)
+    loop_image, _ = rasterize_loop(*args, tile_size=4)
+    tiles_image, _ = rasterize(*args, tile_size=4)
+    lit = loop_image[..., 0] > 0
+    rows, cols = torch.nonzero(lit, as_tuple=True)
+    assert (cols.min(), cols.max(), rows.min(), rows.max()) == (0, 7, 4, 11)  # tiles x 0-1, y 1-2
+    assert (tiles_image - loop_image).abs().max() < 1e-12
