@@ -207,3 +207,17 @@ def test_a_gaussian_is_composited_inside_its_square_only():
     rows, cols = torch.nonzero(lit, as_tuple=True)
     assert (cols.min(), cols.max(), rows.min(), rows.max()) == (0, 7, 4, 11)  # tiles x 0-1, y 1-2
     assert (tiles_image - loop_image).abs().max() < 1e-12
+
+
+def test_one_intersection_and_none():
+    """A single Gaussian inside one tile (one tile-Gaussian pair to walk) against the loop, and a
+    culled one (radius 0: nothing to walk) leaving the image empty."""
+    args = (torch.tensor([[13.5, 13.5]], dtype=F64), torch.tensor([[1.0, 0.2, 1.5]], dtype=F64),
+            torch.tensor([0.7], dtype=F64), torch.tensor([[0.2, 0.4, 0.8]], dtype=F64))
+    rest = (torch.tensor([1.0], dtype=F64), 16, 16)
+    loop_image, loop_alpha = rasterize_loop(*args, torch.tensor([1]), *rest, tile_size=4)
+    tiles_image, tiles_alpha = rasterize(*args, torch.tensor([1]), *rest, tile_size=4)
+    assert loop_alpha[13, 13].item() == pytest.approx(0.7, rel=1e-12)
+    assert (tiles_image - loop_image).abs().max() < 1e-12 and (tiles_alpha - loop_alpha).abs().max() < 1e-12
+    empty_image, empty_alpha = rasterize(*args, torch.tensor([0]), *rest, tile_size=4)
+    assert not empty_image.any() and not empty_alpha.any()
