@@ -18,26 +18,27 @@ from pathlib import Path
 KILLED, SURVIVED, NO_TESTS = {1, 3, 37}, {0}, {5, 33}
 
 
+def results(root: Path = Path("mutants")):
+    """Yield (module path, {mutant name: exit code or None}) from each result file."""
+    for meta in sorted(root.rglob("*.py.meta")):
+        yield str(meta.relative_to(root))[:-len(".meta")], json.loads(meta.read_text())["exit_code_by_key"]
+
+
 def summary(root: Path = Path("mutants")) -> list[dict]:
     rows = []
-    for meta in sorted(root.rglob("*.py.meta")):
-        codes = json.loads(meta.read_text())["exit_code_by_key"].values()
+    for module, codes in results(root):
         counts = Counter("killed" if c in KILLED else "survived" if c in SURVIVED else
                          "no tests" if c in NO_TESTS else "not checked" if c is None else "other"
-                         for c in codes)
+                         for c in codes.values())
         tested = counts["killed"] + counts["survived"] + counts["other"]
-        rows.append({"module": str(meta.relative_to(root))[:-len(".meta")], **counts,
+        rows.append({"module": module, **counts,
                      "score": round(counts["killed"] / tested, 3) if tested else None})
     return rows
 
 
 def survivors(root: Path = Path("mutants")) -> list[str]:
     """Names of the surviving mutants, module by module."""
-    names = []
-    for meta in sorted(root.rglob("*.py.meta")):
-        codes = json.loads(meta.read_text())["exit_code_by_key"]
-        names += sorted(k for k, c in codes.items() if c in SURVIVED)
-    return names
+    return [name for _, codes in results(root) for name in sorted(k for k, c in codes.items() if c in SURVIVED)]
 
 
 def changed_lines(name: str) -> str:
