@@ -130,7 +130,7 @@ def test_render_passes_the_settings_performance_knobs_to_its_compositor(monkeypa
     seen = {}
     for name, fn in list(render_module.BACKENDS.items()):
         monkeypatch.setitem(render_module.BACKENDS, name,
-                            lambda *a, _f=fn, _n=name, **kw: seen.setdefault(_n, kw) and _f(*a, **kw))
+                            lambda *a, _f=fn, _n=name, **kw: (seen.setdefault(_n, kw), _f(*a, **kw))[1])
     cams = orbit_cameras(1, 8, 8)
     render(good(), cams, settings=RenderSettings(backend="tiles", tile_size=4, chunk=5))
     render(good(), cams, settings=RenderSettings(backend="dense", tile_size=4, dense_pixel_block=7))
