@@ -56,7 +56,7 @@ def make_ctx(parts, perm=None, seed=0):
 @pytest.mark.parametrize("name,options", [("random", {}), ("coverage", {}), ("fisherrf", {}),
                                           ("popgs", {}), ("gopre", {}), ("gopre", {"score": "mc"}),
                                           ("gopre", {"score": "trace"}), ("gopre", {"goal": "identity"}),
-                                          ("gopre", {"tau": 1e-3}), ("popgs", {"variant": "block"}),
+                                          ("gopre", {"tau": 1e-3}), ("gopre", {"tau": 0.0}), ("popgs", {"variant": "block"}),
                                           ("gaussmi", {}), ("activenerf", {"steps": 10})])
 def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options):
     strategy = make_strategy(name, **options)
@@ -173,8 +173,8 @@ def test_scores_are_finite_with_zero_fisher_entries():
                                            trace_score, updated_variance)
     h = torch.zeros(5, dtype=torch.float64)
     f = torch.tensor([[0.0, 0, 0, 0, 0], [1.0, 0, 2.0, 0, 0]], dtype=torch.float64)
-    sx = updated_variance(posterior_variance(h), f, tau=1e-4)
-    for value in (gopre_score(sx, f[1]), trace_score(sx, f[1]), monte_carlo_score(sx, f)):
+    sx = updated_variance(posterior_variance(h), f)
+    for value in (gopre_score(sx, f[1], 1e-4), trace_score(sx, f[1]), monte_carlo_score(sx, f)):
         assert torch.isfinite(value).all()
 
 
@@ -192,7 +192,8 @@ def test_scores_in_small_candidate_blocks_equal_whole_pool_scores(ctx_parts, mon
         assert blocked.scores[k] == pytest.approx(v, rel=1e-12)
 
 
-@pytest.mark.parametrize("name,options,match", [("gopre", {"tau": 0.0}, "tau must be positive"),
+@pytest.mark.parametrize("name,options,match", [("gopre", {"tau": -1.0}, "tau must be >= 0"),
+                                                ("gopre", {"tau": 0.0, "score": "mc"}, "tau = 0 .*logdet"),
                                                 ("gopre", {"goal": "everything"}, "goal must be one of"),
                                                 ("popgs", {"variant": "full"}, "variant must be one of")])
 def test_bad_strategy_options_name_the_option(name, options, match):

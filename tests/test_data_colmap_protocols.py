@@ -143,6 +143,19 @@ def test_global_and_goal_protocols_on_blender_layout(generated):
     assert set(goal.probe_ids) <= train_inside
 
 
+def test_probes_come_from_all_training_views_in_the_manifold_initial_views_included(generated, bonsai):
+    """The paper draws the K probes from every training view in the target manifold; the initial
+    views are training views too (they are removed from the candidate pool, not from the probes)."""
+    g = build_protocol(generated, ProtocolConfig("global"))
+    assert set(g.probe_ids) == set(g.pool_ids) | set(g.initial_ids) == set(range(40))
+    goal = build_protocol(generated, ProtocolConfig("goal"))
+    sector = SectorManifold(0, 120, up=[0, 0, 1]).resolve(generated.all_cameras())
+    assert set(goal.probe_ids) == set(member_ids(sector, generated.split("train").cameras, list(range(40))))
+    real = build_protocol(bonsai, ProtocolConfig("global"))
+    assert set(real.initial_ids) <= set(real.probe_ids)
+    assert set(real.probe_ids) == set(real.pool_ids) | set(real.initial_ids)
+
+
 def test_probe_fraction_counts_all_views_of_the_pool_split_not_the_sector(generated):
     """Paper Table 5: K = N/4 ... N/64 of all N views; under the goal protocol only the sector's
     views can be probes, so K is then capped at their number."""

@@ -436,3 +436,24 @@ def test_the_fisher_takes_cameras_to_the_gaussians_dtype(backend):
     spec, settings = FisherSpec(("means", "sh0")), replace(SETTINGS, backend=backend)
     assert torch.equal(view_fisher(g, cams, BG, spec, settings),
                        view_fisher(g, cams.to(dtype=F64), BG, spec, settings))
+
+
+def test_tau_to_zero_removes_the_goal_from_the_ranking_and_tau_one_does_not():
+    """The paper: "taking the limit tau -> 0, under which the Goal Hessian loses its effect on the
+    candidate ranking". Two goals on a 2-parameter toy pick different views at tau = 1; their
+    finite-tau rankings converge to the limit ranking, which is the same for both."""
+    from pipeline.acquisition.base import greedy_pick
+    from pipeline.fisher.posterior import gopre_limit_score
+    h = torch.tensor([1.0, 1.0], dtype=F64)
+    cands = torch.tensor([[9.0, 0.0], [0.0, 4.0], [2.0, 2.5]], dtype=F64)  # view 0 sees parameter 0, ...
+    goals = {"a": torch.tensor([10.0, 0.1], dtype=F64), "b": torch.tensor([0.1, 10.0], dtype=F64)}
+
+    def pick(goal, tau):
+        def score(hh, f):
+            sx = updated_variance(posterior_variance(hh), f)
+            return gopre_limit_score(sx, goal) if tau == 0 else gopre_score(sx, goal, tau)
+        return greedy_pick(cands, h, score, count=3, maximize=False)[0]
+    assert pick(goals["a"], 1.0)[0] != pick(goals["b"], 1.0)[0]
+    assert pick(goals["a"], 0) == pick(goals["b"], 0)
+    for goal in goals.values():
+        assert pick(goal, 1e-5) == pick(goal, 0)  # the limit is the small-tau ranking

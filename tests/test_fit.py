@@ -8,7 +8,7 @@ import torch
 from pipeline.fit import Trainer, evaluate_psnr, tiny_preset
 from pipeline.fit.config import DensifyConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, remap, reset_opacity
-from pipeline.fit.init import knn_mean_distance, random_in_box
+from pipeline.fit.init import knn_rms_distance, random_in_box
 from pipeline.fit.losses import photometric_loss, psnr, ssim, ssim_map
 from pipeline.splat import render
 from pipeline.splat.scenes import random_scene, sphere_cameras
@@ -38,10 +38,21 @@ def test_psnr_and_loss_closed_forms():
     assert photometric_loss(a, b, ssim_weight=0.0).item() == pytest.approx(0.1, rel=1e-6)
 
 
-def test_knn_mean_distance_on_a_grid():
+def test_knn_rms_distance_on_a_grid():
     g = torch.stack(torch.meshgrid(*[torch.arange(4.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    d = knn_mean_distance(g * 0.5, k=3, block=7)
+    d = knn_rms_distance(g * 0.5, k=3, block=7)
     assert torch.allclose(d, torch.full_like(d, 0.5))
+
+
+def test_knn_scale_is_the_root_mean_square_of_the_three_nearest_distances():
+    """3DGS initialises scales as sqrt(mean of the squared distances to the 3 nearest points), not
+    their mean distance: points on a line at 0, 1, 3, 6, 10, written out by hand."""
+    x = torch.tensor([0.0, 1.0, 3.0, 6.0, 10.0], dtype=torch.float64)
+    points = torch.stack([x, torch.zeros_like(x), torch.zeros_like(x)], -1)
+    d = knn_rms_distance(points, k=3, block=2)
+    by_hand = [(1, 3, 6), (1, 2, 5), (2, 3, 3), (3, 4, 5), (4, 7, 9)]  # nearest three of each point
+    expected = torch.tensor([math.sqrt(sum(v * v for v in t) / 3) for t in by_hand], dtype=torch.float64)
+    assert torch.allclose(d, expected, rtol=1e-12)
 
 
 def _trainer_with_grads(n=50):
@@ -135,7 +146,7 @@ def test_short_fit_on_lego_clears_psnr_bar():
 def test_scaled_schedules_and_no_opacity_reset_at_the_end():
     from pipeline.fit import cpu_preset
     cfg = cpu_preset().scaled_to(1000)
-    assert cfg.iterations == 1000 and cfg.densify.stop == 500 and cfg.densify.opacity_reset_interval == 333
+    assert cfg.iterations == 1000 and cfg.densify.stop == 500 and cfg.densify.opacity_reset_interval == 100
     g = random_scene(50, seed=0)
     cams = sphere_cameras(2, 16, 16)
     with torch.no_grad():

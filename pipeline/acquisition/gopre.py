@@ -1,7 +1,9 @@
 """``gopre``: argmin over the pool of sum_i log1p(Sx_i M_i / tau^2) (paper Eq. final-objective).
 
 M is the goal Hessian, the mean Fisher of K probe poses from the target manifold. Ablations:
-``goal="identity"`` (M = I, w/o goal Hessian), small ``tau`` (w/o observation noise),
+``goal="identity"`` (M = I, w/o goal Hessian), ``tau=0`` (w/o observation noise: the exact
+tau -> 0 limit of the score, where M's values drop out of the ranking; ``fisher.posterior`` derives
+it; tau enters the score only, the posterior is the paper's unit-noise one),
 ``score="trace"`` (trace approximation), ``score="mc"`` (direct Monte-Carlo over the probes),
 ``fisher_groups="without_sh_rest"`` (the Fisher without the higher-order SH coefficients).
 """
@@ -16,8 +18,9 @@ from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vecto
                                        pool_and_train_fishers, timed_selection)
 from pipeline.fisher.exact import FisherSpec
 from pipeline.fisher.features import PARAM_GROUPS
-from pipeline.fisher.posterior import (goal_hessian, gopre_score, monte_carlo_score,
-                                       posterior_variance, trace_score, updated_variance)
+from pipeline.fisher.posterior import (goal_hessian, gopre_limit_score, gopre_score,
+                                       monte_carlo_score, posterior_variance, trace_score,
+                                       updated_variance)
 
 SCORES = ("logdet", "trace", "mc")
 GOALS = ("probes", "identity")
@@ -44,20 +47,25 @@ class GoPreStrategy:
             raise ValueError(f"gopre score must be one of {SCORES}, got {self.score!r}")
         if self.goal not in GOALS:
             raise ValueError(f"gopre goal must be one of {GOALS}, got {self.goal!r}")
-        if self.tau <= 0:
-            raise ValueError(f"gopre tau must be positive, got {self.tau}")
+        if not self.tau >= 0:
+            raise ValueError(f"gopre tau must be >= 0 (0: the tau -> 0 limit), got {self.tau}")
+        if self.tau == 0 and self.score != "logdet":
+            raise ValueError(f"gopre tau = 0 (the limit) is defined for score='logdet' only, "
+                             f"got score={self.score!r}")
 
     def _scorer(self, probes: torch.Tensor | None):
         tau = self.tau
         if self.score == "mc":
             return lambda h, f: monte_carlo_score(
-                updated_variance(posterior_variance(h, self.lam), f, tau), probes, tau)
+                updated_variance(posterior_variance(h, self.lam), f), probes, tau)
         goal = goal_hessian(probes) if probes is not None else None
-        fn = gopre_score if self.score == "logdet" else trace_score
 
         def score(h, f):
-            sx = updated_variance(posterior_variance(h, self.lam), f, tau)
-            return fn(sx, torch.ones_like(sx[0]) if goal is None else goal, tau)
+            sx = updated_variance(posterior_variance(h, self.lam), f)
+            m = torch.ones_like(sx[0]) if goal is None else goal
+            if tau == 0:
+                return gopre_limit_score(sx, m)
+            return (gopre_score if self.score == "logdet" else trace_score)(sx, m, tau)
         return score
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:

@@ -13,6 +13,8 @@ from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat.project import project
+from pipeline.splat.rasterize import CompositingWeights, compositing_weights
 
 
 def weighted_pixel_sums(gaussians: Gaussians, camera: Cameras, pixel_maps: Tensor,
@@ -38,3 +40,16 @@ def render_feature(gaussians: Gaussians, cameras: Cameras, values: Tensor,
                        extra_features=v[:, None].to(gaussians.means.dtype))
         out.append(r.rgb[0, ..., 3])
     return torch.stack(out)
+
+
+@torch.no_grad()
+def view_compositing_weights(gaussians: Gaussians, camera: Cameras,
+                             settings: RenderSettings) -> CompositingWeights:
+    """The sparse compositing weights w_pg = alpha T of one camera (``splat.rasterize``)."""
+    if len(camera) != 1:
+        raise ValueError(f"view_compositing_weights takes one camera, got {len(camera)}")
+    cam = camera.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
+    proj = project(gaussians.detach(), cam.viewmats[0], cam.Ks[0], cam.width, cam.height, 0,
+                   settings.near)
+    return compositing_weights(proj.means2d, proj.conics, proj.opacities, proj.radii, proj.depths,
+                               cam.width, cam.height, settings.tile_size, settings.chunk)

@@ -30,7 +30,7 @@ from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.scene import Scene
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
 from pipeline.fit.init import from_point_cloud, random_in_box
-from pipeline.fit.trainer import Trainer
+from pipeline.fit.trainer import Trainer, scene_extent
 from pipeline.memory import peak_rss_mb
 from pipeline.splat import Gaussians, ply
 from pipeline.splat.gaussians import num_sh_bases
@@ -120,6 +120,15 @@ def views_schedule(views: ProtocolViews, cfg: EpisodeConfig) -> Schedule:
                             reload=cfg.post_selection == "reload")
 
 
+def episode_extent(scene: Scene, views: ProtocolViews) -> float:
+    """3DGS's scene extent for the whole episode: from every camera the episode may train on (the
+    initial views and the candidate pool, all known before the first pick), as 3DGS and FisherRF
+    take it from all training cameras; the same for every policy and every round."""
+    ids = sorted(set(views.initial_ids) | set(views.pool_ids))
+    return scene_extent(scene.split(views.pool_split).cameras[ids],
+                        f"scene {scene.root} ({len(ids)} initial and pool cameras)")
+
+
 def episode_plan(scene: Scene, cfg: EpisodeConfig) -> Schedule:
     """The schedule an episode of ``cfg`` on ``scene`` follows, known before it runs."""
     return views_schedule(build_protocol(scene, cfg.protocol), cfg)
@@ -145,6 +154,7 @@ class Episode:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.curve_ids = uniform_subset(self.views.test_ids, cfg.curve_test_views)
         self.init = initial_gaussians(scene, cfg).to(self.device)
+        self.extent = episode_extent(scene, self.views)
         self.taken = list(self.views.initial_ids)
         self.records: list[RoundRecord] = []
         self.trainer = self._new_trainer()
@@ -161,7 +171,7 @@ class Episode:
             # both would put resets right before an evaluation of the PSNR-vs-views curve
             fit = fit.with_changes(densify=replace(fit.densify, periodic_opacity_reset=False))
         return Trainer(self.init, self.pool.cameras[self.taken], self.images(self.pool, self.taken),
-                       fit, self.background, nonfinite_dir=self.folder)
+                       fit, self.background, extent=self.extent, nonfinite_dir=self.folder)
 
     # -- checkpoint ---------------------------------------------------------------------------
     def state(self, key: str) -> dict:

@@ -149,6 +149,8 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
     if budget > initial + len(pool):
         raise ValueError(f"budget={budget} exceeds the {initial} initial views plus the {len(pool)} "
                          f"views the pool can still give")
-    probe_ids = [i for i in probe_pool if i not in set(init)] or probe_pool
+    # the paper draws probes from all training views in the target manifold, the initial views
+    # included (until the fidelity fixes they were removed from the probe pool)
+    probe_ids = list(probe_pool)
     k = min(probe_count(probes, len(pool_cams)), len(probe_ids))
     return ProtocolViews(pool_split, pool, init, test_split, test_all, probe_ids, budget, k, up.tolist())

@@ -29,6 +29,10 @@ METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: ov
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
               "init"}  # init: optional (+splat.init=ply:PATH), absent from the presets' hashes
+# Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
+# never resumes or reuses results of the code before it. "fidelity-1": issue 26 (scene extent,
+# tau -> 0, ActiveNeRF port, prune switch, kNN scales, probes incl. the initial views).
+RESULTS_REVISION = "fidelity-1"
 NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")
 
 
@@ -120,7 +124,8 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
             datasets.items(), methods.items(), seeds_of(cfg), _axes(cfg)):
         check_keys(f"method.{mname}", method, METHOD_KEYS)
         for scene in dset["scenes"]:
-            job = {"sweep": str(cfg.name), "kind": job_cfg["kind"], "dataset": dname,
+            job = {"sweep": str(cfg.name), "results_revision": RESULTS_REVISION,
+                   "kind": job_cfg["kind"], "dataset": dname,
                    "format": dset["format"], "scene": scene,
                    "scene_path": str(Path(str(dset["root"])) / scene), "generate": dset.get("generate"),
                    "method": mname, "strategy": method["strategy"],

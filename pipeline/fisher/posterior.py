@@ -1,9 +1,30 @@
 """Laplace posterior, GO-PRE scores and predictive entropy, all diagonal (as FisherRF).
 
-Vectors are per-parameter diagonals, flattened to [..., D], float64. Paper references:
-Eq. covariance-update  Sigma_x = (Sigma^-1 + tau^-2 J_x^T J_x)^-1  ->  Sx = 1 / (1/S + F_x / tau^2)
-Eq. go-pre-score       log det(I + tau^-2 Sx^1/2 M Sx^1/2)          ->  sum_i log1p(Sx_i M_i / tau^2)
-(the paper sets tau = 1; keeping tau^-2 inside the log makes the tau -> 0 ablation well defined).
+Vectors are per-parameter diagonals, flattened to [..., D], float64.
+
+Where tau enters (paper Eqs. 1, 5, 8, 11-12)
+--------------------------------------------
+Eq. 1 models a pixel as z = f(p, theta) + eta, eta ~ N(0, tau^2 I). Read literally, the noise
+scales every likelihood term, so the Laplace posterior would be
+    Sigma^-1 = tau^-2 H_train + lambda,  Sigma_x^-1 = Sigma^-1 + tau^-2 F_x        (Eq. 5)
+and the score terms become log(1 + M_i / (H_i + F_i + lambda tau^2)): as tau -> 0 the goal M
+still weighs every parameter, so under that reading the paper's ablation claim ("taking the limit
+tau -> 0, under which the Goal Hessian loses its effect on the candidate ranking", Sec. 6) is false.
+The paper instead fixes the posterior at tau = 1 ("we set tau = 1", as FisherRF: Sigma = (H + lambda)^-1,
+Sigma_x = (Sigma^-1 + F_x)^-1) and lets tau^2 enter "the acquisition score as a precision-scale
+parameter" (Appendix, ablation "w/o observation noise"):
+    score_tau(x) = log det(I + tau^-2 Sigma_x^1/2 M Sigma_x^1/2) = sum_i log1p(Sx_i M_i / tau^2)  (Eq. 8)
+That is what this module implements: ``updated_variance`` and the greedy update H <- H + F_pick
+(``acquisition.base.greedy_pick``) use the unit-noise posterior, and tau appears only in the score.
+At tau = 1 (the paper's GO-PRE) all readings agree. As tau -> 0, for M_i > 0,
+    log1p(Sx_i M_i / tau^2) = log Sx_i + log M_i - 2 log tau + O(tau^2 / (Sx_i M_i)),
+and the last three terms do not depend on the candidate x, so the ranking tends to that of
+    score_0(x) = sum_{i : M_i > 0} log Sx_i   (= log det Sigma_x restricted to what the goal sees).
+M's values drop out; only its support (the parameters some probe pose sees at all) is left.
+``gopre_limit_score`` is that limit, computed exactly rather than at a small tau, where
+Sx_i M_i / tau^2 would not yet be large for the many tiny M_i and the goal would still rank.
+Eqs. 11-12 (the predictive covariance J Sigma J^T + tau^2 I of an arbitrary view) use tau in
+``predictive_entropy`` with the same unit-noise Sigma.
 """
 
 from __future__ import annotations
@@ -21,14 +42,23 @@ def posterior_variance(h_train: Tensor, lam: float = 1e-6) -> Tensor:
     return 1.0 / (h_train.double() + lam)
 
 
-def updated_variance(s: Tensor, fisher_x: Tensor, tau: float = 1.0) -> Tensor:
-    """Sx = 1 / (1/S + F_x / tau^2) after observing candidate x: S [D], F_x [..., D]."""
-    return 1.0 / (1.0 / s + fisher_x.double() / tau ** 2)
+def updated_variance(s: Tensor, fisher_x: Tensor) -> Tensor:
+    """Sx = 1 / (1/S + F_x) after observing candidate x (unit-noise posterior, see the module
+    docstring): S [D], F_x [..., D]."""
+    return 1.0 / (1.0 / s + fisher_x.double())
 
 
 def gopre_score(sx: Tensor, goal: Tensor, tau: float = 1.0) -> Tensor:
     """sum_i log1p(Sx_i M_i / tau^2) over the last axis; lower is better (argmin)."""
     return torch.log1p(sx * goal.double() / tau ** 2).sum(-1)
+
+
+def gopre_limit_score(sx: Tensor, goal: Tensor) -> Tensor:
+    """The tau -> 0 limit of ``gopre_score`` up to candidate-independent terms:
+    sum over {i : M_i > 0} of log Sx_i, [..., D] -> [...]; lower is better. M's values do not
+    enter, only its support."""
+    seen = goal.double() > 0
+    return torch.where(seen, torch.log(sx), torch.zeros_like(sx)).sum(-1)
 
 
 def trace_score(sx: Tensor, goal: Tensor, tau: float = 1.0) -> Tensor:

@@ -104,7 +104,9 @@ def densify_and_prune(params: dict[str, Tensor], optimizer: torch.optim.Optimize
     if prune_large:
         radii = torch.cat([stats.max_radii, stats.max_radii.new_zeros(total - n)])
         world = torch.exp(params["log_scales"].detach()).max(dim=1).values
-        drop |= (radii > cfg.max_screen_radius) | (world > cfg.max_world_scale * extent)
+        drop |= radii > cfg.max_screen_radius
+        if cfg.max_world_scale is not None:
+            drop |= world > cfg.max_world_scale * extent
     if bool(drop.all()):  # never prune the scene away entirely
         drop[torch.argmax(params["logit_opacities"].detach())] = False
     return remap(params, optimizer, ~drop)

@@ -1,4 +1,5 @@
-"""Initial Gaussians: from a point cloud (3DGS: scale = mean distance to 3 neighbours) or random."""
+"""Initial Gaussians: from a point cloud (3DGS: scale = root mean square distance to the 3 nearest
+neighbours) or random."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ from torch import Tensor
 from pipeline.splat import Gaussians
 
 
-def knn_mean_distance(points: Tensor, k: int = 3, block: int = 4096) -> Tensor:
-    """Mean distance of each point [N, 3] to its ``k`` nearest other points, [N] (blocked cdist)."""
+def knn_rms_distance(points: Tensor, k: int = 3, block: int = 4096) -> Tensor:
+    """Root mean square distance of each point [N, 3] to its ``k`` nearest other points, [N]
+    (blocked cdist). 3DGS: scales = sqrt(clamp(mean of the 3 squared distances, 1e-7))."""
     n = points.shape[0]
     if n <= 1:
         return points.new_ones(n)
@@ -18,7 +20,7 @@ def knn_mean_distance(points: Tensor, k: int = 3, block: int = 4096) -> Tensor:
     for start in range(0, n, block):
         d = torch.cdist(points[start:start + block], points)  # [B, N]
         nearest = d.topk(k + 1, largest=False).values[:, 1:]  # drop the point itself
-        out.append(nearest.mean(dim=1))
+        out.append(nearest.square().mean(dim=1).clamp_min(1e-7).sqrt())
     return torch.cat(out)
 
 
@@ -28,7 +30,7 @@ def from_point_cloud(points: Tensor, colors: Tensor, sh_degree: int, opacity: fl
         raise ValueError(f"points must be a non-empty [N, 3] tensor, got {tuple(points.shape)}")
     if colors.shape != points.shape:
         raise ValueError(f"colors must match points {tuple(points.shape)}, got {tuple(colors.shape)}")
-    scale = knn_mean_distance(points).clamp_min(1e-7)
+    scale = knn_rms_distance(points)
     return Gaussians.from_points(points, colors, sh_degree, scale, opacity)
 
 

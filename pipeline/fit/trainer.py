@@ -34,10 +34,18 @@ class NonFiniteTraining(RuntimeError):
     """Too many training steps had a non-finite loss or gradient."""
 
 
-def scene_extent(cameras: Cameras) -> float:
-    """3DGS scene scale: 1.1 x the largest distance of a camera centre from their mean."""
+def scene_extent(cameras: Cameras, what: str = "the training cameras") -> float:
+    """3DGS scene scale: 1.1 x the largest distance of a camera centre from their mean.
+
+    It scales the means' learning rate and the densification thresholds, so an extent of zero
+    (one camera, or every centre at one point) is refused, naming ``what``, not divided by."""
     centers = cameras.centers.double()
-    return 1.1 * float((centers - centers.mean(0)).norm(dim=1).max().clamp_min(1e-6))
+    radius = float((centers - centers.mean(0)).norm(dim=1).max()) if len(cameras) else 0.0
+    if not radius > 1e-9 * max(1.0, float(centers.abs().max()) if len(cameras) else 1.0):
+        raise ValueError(f"{what}: the scene extent is zero ({len(cameras)} camera(s), every centre "
+                         f"at one point); 3DGS scales the learning rate of the means and the "
+                         f"densification thresholds by it, so it needs cameras at two places at least")
+    return 1.1 * radius
 
 
 @dataclass
@@ -205,7 +213,7 @@ class Trainer:
         dcfg = self.config.densify
         if self.step < dcfg.stop and self.step > dcfg.start and self.step % dcfg.interval == 0:
             self.params = densify_and_prune(self.params, self.optimizer, self.stats, dcfg, self.extent,
-                                            self.step > dcfg.opacity_reset_interval, self.generator)
+                                            self.step > dcfg.prune_large_after, self.generator)
             self.stats = DensifyStats.zeros(self.params["means"].shape[0], self.stats.grad_sum)
         # a reset in the last tenth of the run would leave no time to recover the opacities
         late = self.step > 0.9 * self.config.iterations

@@ -299,3 +299,60 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tens
     done = outside_image(bins, width, height, means2d.device)
     acc, trans = _TileComposite.apply(psi, feats, bins, phi, done, chunk)
     return untile(acc, bins, width, height), untile(1 - trans, bins, width, height)
+
+
+@dataclass
+class CompositingWeights:
+    """Every nonzero compositing weight w = alpha T of one image, as a sparse list of E entries:
+    pixel [E] (row-major index y * width + x), gaussian [E] (index into the N Gaussians), weight [E].
+    A pixel's rendered feature is sum over its entries of weight * feature[gaussian]."""
+
+    pixel: Tensor
+    gaussian: Tensor
+    weight: Tensor
+    width: int
+    height: int
+
+    def composite(self, values: Tensor, power: int = 1) -> Tensor:
+        """sum_g w_pg^power values_g for per-Gaussian ``values`` [N] -> [H, W] (differentiable in
+        ``values``); power 1 is the ordinary composite, 2 ActiveNeRF's variance composite."""
+        return self.per_pixel(self.weight.to(values.dtype) ** power * values[self.gaussian])
+
+    def per_pixel(self, entries: Tensor) -> Tensor:
+        """Sum per-entry values [E] over each pixel's entries -> [H, W]."""
+        out = entries.new_zeros(self.width * self.height).index_add(0, self.pixel, entries)
+        return out.reshape(self.height, self.width)
+
+
+@torch.no_grad()
+def compositing_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor,
+                        depths: Tensor, width: int, height: int, tile_size: int = 8,
+                        chunk: int = 64) -> CompositingWeights:
+    """The compositing weights of the tile walk (same alphas, clamps and termination as
+    ``rasterize``), listed per (pixel, Gaussian): means2d [N, 2], conics [N, 3], opacities [N],
+    radii [N], depths [N]. For statistics that need w itself, not only sum_g w_pg f_g (e.g. the
+    squared weights of ActiveNeRF's rendered variance)."""
+    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    psi = intersection_coeffs(bins, means2d, conics, opacities)
+    phi = tile_monomials(tile_size, means2d.dtype, means2d.device)
+    done = outside_image(bins, width, height, means2d.device)
+    trans = psi.new_ones(done.shape).masked_fill_(done, 0.0)
+    ts = tile_size
+    pixels, gaussians, weights = [], [], []
+    for active, pos, valid in _walk(bins, done, chunk):
+        st = _chunk_state(phi, _chunk_psi(psi, pos, valid), trans[active])
+        keep = (st["weights"] > 0) & valid[:, None, :]  # [Ta, P, K]
+        ti, pi, ki = torch.nonzero(keep, as_tuple=True)
+        tile = active[ti]
+        row = (tile // bins.tiles_x) * ts + pi // ts
+        col = (tile % bins.tiles_x) * ts + pi % ts
+        pixels.append(row * width + col)
+        gaussians.append(bins.gauss_ids[pos[ti, ki]])
+        weights.append(st["weights"][ti, pi, ki])
+        ends = st["ends"]
+        trans[active] = st["trans_after"].masked_fill(ends, 0.0)
+        done[active] = done[active] | ends
+    if not pixels:
+        empty = means2d.new_zeros(0, dtype=torch.long)
+        return CompositingWeights(empty, empty.clone(), means2d.new_zeros(0), width, height)
+    return CompositingWeights(torch.cat(pixels), torch.cat(gaussians), torch.cat(weights), width, height)
