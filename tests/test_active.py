@@ -239,3 +239,42 @@ def test_strategies_see_the_model_at_the_active_sh_degree(scene_dir, monkeypatch
     assert seen == expected
     assert result.gaussians.sh_degree == min(fit.sh_degree, result.rounds[-1].iteration // fit.sh_degree_interval)
 
+
+
+@pytest.mark.parametrize("policy", ["reset_opacity", "reload"])
+def test_the_scene_extent_is_that_of_the_initial_and_pool_cameras_for_the_whole_episode(scene_dir, policy):
+    """3DGS takes the extent from all training cameras; the episode knows its pool before the first
+    pick, so every trainer of the episode (a reload's too) uses the initial + pool cameras' extent,
+    not the initial views' alone."""
+    from pipeline.active.episode import Episode
+    cfg = tiny_episode(strategy="random", post_selection=policy)
+    ep = Episode(load(scene_dir, cfg), cfg)
+    ids = sorted(set(ep.views.initial_ids) | set(ep.views.pool_ids))
+    centers = ep.pool.cameras[ids].centers.double()
+    by_hand = 1.1 * float((centers - centers.mean(0)).norm(dim=1).max())
+    initial = ep.pool.cameras[ep.views.initial_ids].centers.double()
+    assert abs(1.1 * float((initial - initial.mean(0)).norm(dim=1).max()) - by_hand) > 0.05 * by_hand
+    assert ep.trainer.extent == pytest.approx(by_hand, rel=1e-9)
+    for round_index in range(2):
+        ep.train(5, False)
+        rec = ep.record(0.0)
+        ep.select(rec)
+        ep.after_selection()
+        ep.records.append(rec)
+        assert ep.trainer.extent == pytest.approx(by_hand, rel=1e-9), f"after pick {round_index}"
+
+
+def test_a_zero_scene_extent_is_refused_with_the_scene_named():
+    import torch
+    from types import SimpleNamespace
+    from pipeline.active.episode import episode_extent
+    from pipeline.cameras import Cameras
+    from pipeline.fit.trainer import scene_extent
+    one = Cameras(torch.eye(4)[None].repeat(3, 1, 1), torch.eye(3)[None].repeat(3, 1, 1), 8, 8)
+    scene = SimpleNamespace(root="/data/flat", split=lambda name: SimpleNamespace(cameras=one))
+    views = SimpleNamespace(initial_ids=[0], pool_ids=[1, 2], pool_split="train")
+    with pytest.raises(ValueError, match=r"^scene /data/flat \(3 initial and pool cameras\): the scene "
+                                         r"extent is zero \(3 camera\(s\), every centre at one point\)"):
+        episode_extent(scene, views)
+    with pytest.raises(ValueError, match=r"^the training cameras: the scene extent is zero \(1 camera"):
+        scene_extent(one[[0]])

@@ -294,3 +294,15 @@ def test_a_truncated_cameras_bin_is_named(tmp_path):
         read_colmap(scene)
     res = run_inspect(scene)
     assert res.returncode == 1 and "cameras.bin: truncated COLMAP camera file" in res.stderr
+
+
+def test_without_a_width_colmap_images_train_at_most_1600_px_wide(monkeypatch):
+    """3DGS's resolution rule: images wider than 1600 px are trained at 1600 px (the staged bonsai
+    is 400 px wide, so the rule is exercised with the limit lowered)."""
+    from pipeline.data import colmap
+    assert colmap.MAX_DEFAULT_WIDTH == 1600
+    monkeypatch.setattr(colmap, "MAX_DEFAULT_WIDTH", 300)
+    scene = read_colmap(shared_scene("colmap", "bonsai"))
+    cams = scene.split("all").cameras
+    assert (cams.width, cams.height) == (300, 200)
+    assert read_colmap(shared_scene("colmap", "bonsai"), width=350).split("all").cameras.width == 350

@@ -406,3 +406,56 @@ def test_opacity_reset_zeroes_only_the_opacity_moments_and_works_before_any_step
     reset_opacity(fresh, opt, 0.01)  # no Adam state yet: nothing to zero, no error
     stats = DensifyStats(torch.ones(2, dtype=F64), torch.ones(2, dtype=F64), torch.zeros(2, dtype=F64))
     densify_and_prune(fresh, opt, stats, DensifyConfig(min_opacity=0.0), 1.0, False)  # nor here
+
+
+def test_presets_switch_big_gaussian_pruning_on_at_a_tenth_of_the_run_as_3dgs():
+    """3DGS prunes big Gaussians from iteration 3000 of 30k on. Every preset, and the CPU episode
+    recipe rescaled to a real scene's 5,100 iterations, keeps that tenth (it was a third at CPU
+    scale, tied to the opacity-reset interval, and pruning switched on mid-episode)."""
+    from pipeline.active.config import cpu_episode
+    from pipeline.fit.config import cpu_preset, paper_preset
+    paper = paper_preset()
+    assert paper.densify.prune_large_after == 3000 and paper.densify.max_world_scale == 0.1
+    for fit in (paper, cpu_preset(), cpu_episode().fit, cpu_episode().fit.scaled_to(5100)):
+        assert fit.densify.prune_large_after / fit.iterations == pytest.approx(0.1, abs=0.002)
+
+
+def test_pruning_of_big_gaussians_starts_after_prune_large_after_not_the_reset_interval(monkeypatch):
+    from pipeline.fit import trainer as trainer_module
+    seen = []
+    real = trainer_module.densify_and_prune
+
+    def spy(params, opt, stats, cfg, extent, prune_large, generator=None):
+        seen.append((int(t.step), prune_large))
+        return real(params, opt, stats, cfg, extent, prune_large, generator)
+    monkeypatch.setattr(trainer_module, "densify_and_prune", spy)
+    g = random_scene(40, seed=0)
+    cams = sphere_cameras(2, 16, 16)
+    with torch.no_grad():
+        imgs = render(g, cams).rgb
+    cfg = tiny_preset().with_changes(iterations=40, densify=DensifyConfig(
+        start=1, stop=40, interval=5, prune_large_after=12, opacity_reset_interval=30))
+    t = Trainer(g, cams, imgs, cfg)
+    t.train(40)
+    assert seen == [(s, s > 12) for s in range(5, 40, 5)]
+
+
+def test_the_first_iterations_of_a_recipe_keep_its_schedules():
+    """The sparsification fit: the paper recipe's first 2,000 iterations densify every 100 from
+    500, reset no opacity, raise the SH degree every 1,000 and decay the lr over 30k."""
+    from pipeline.active.uncertainty import sparsification_fit
+    from pipeline.fit.config import paper_preset
+    fit = sparsification_fit(paper_preset(), 2000, seed=3)
+    d = fit.densify
+    assert (fit.iterations, fit.seed, fit.sh_degree_interval, fit.lr_decay_iterations) == (2000, 3, 1000, 30_000)
+    assert (d.start, d.interval, d.opacity_reset_interval, d.prune_large_after) == (500, 100, 3000, 3000)
+    g = random_scene(20, seed=0)
+    cams = sphere_cameras(2, 16, 16)
+    with torch.no_grad():
+        imgs = render(g, cams).rgb
+    t = Trainer(g, cams, imgs, fit)
+    t.step = 1000  # the means' lr at 1000 of a 30k decay, not of a 2k one
+    lr = fit.lr
+    expected = t.extent * math.exp((1 - 1000 / 30_000) * math.log(lr.means_init) + 1000 / 30_000 * math.log(lr.means_final))
+    assert t._means_lr() == pytest.approx(expected, rel=1e-12)
+    assert sparsification_fit(fit, 5000, seed=3) == fit  # a shorter recipe is used as it is

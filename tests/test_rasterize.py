@@ -221,3 +221,27 @@ def test_one_intersection_and_none():
     assert (tiles_image - loop_image).abs().max() < 1e-12 and (tiles_alpha - loop_alpha).abs().max() < 1e-12
     empty_image, empty_alpha = rasterize(*args, torch.tensor([0]), *rest, tile_size=4)
     assert not empty_image.any() and not empty_alpha.any()
+
+
+@pytest.mark.parametrize("seed,opacity", [(0, (0.2, 0.7)), (1, (0.85, 0.99))])
+def test_compositing_weight_list_equals_the_dense_oracle_weights(seed, opacity):
+    """Every listed w = alpha T against the dense compositor rendering a one-hot feature per
+    Gaussian (the oracle); opaque scenes exercise early termination. And composite() of any
+    per-Gaussian values equals the production (compiled) render of them."""
+    from pipeline.acquisition.rendered_stats import view_compositing_weights
+    g = random_scene(12, seed=seed, dtype=F64, opacity_range=opacity)
+    cam = orbit_cameras(1, 13, 11, dtype=F64, radius=2.4, phase=0.4 * seed)  # W != H, edge tiles
+    settings = RenderSettings(tile_size=4, chunk=3)
+    cw = view_compositing_weights(g, cam, settings)
+    dense = torch.zeros(len(g), 11 * 13, dtype=F64)
+    dense[cw.gaussian, cw.pixel] += cw.weight  # duplicates would add up and fail below
+    for k in range(len(g)):
+        onehot = torch.zeros(len(g), 1, dtype=F64)
+        onehot[k] = 1
+        oracle = render(g, cam, BG, settings=RenderSettings(backend="dense"), extra_features=onehot).rgb[0, ..., 3]
+        assert torch.allclose(dense[k].reshape(11, 13), oracle, rtol=1e-9, atol=1e-12), f"Gaussian {k}"
+    values = torch.linspace(-1.0, 2.0, len(g), dtype=F64)
+    compiled = render(g, cam, BG, settings=RenderSettings(backend="compiled"), extra_features=values[:, None])
+    assert torch.allclose(cw.composite(values), compiled.rgb[0, ..., 3], rtol=1e-9, atol=1e-12)
+    assert torch.allclose(cw.composite(values, power=2), (dense.reshape(len(g), 11, 13).square()
+                                                          * values[:, None, None]).sum(0), rtol=1e-12)

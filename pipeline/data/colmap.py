@@ -72,10 +72,15 @@ def _intrinsics(cam, path: Path, allow_distortion: bool) -> tuple[float, float, 
     return fx, fy, cx, cy
 
 
+# 3DGS's resolution rule: without an explicit width, images wider than 1600 px train at 1600 px.
+MAX_DEFAULT_WIDTH = 1600
+
+
 def read_colmap(root: str | Path, width: int | None = None, images: str = "images",
                 background=(0.0, 0.0, 0.0), llff_hold: int = 8, allow_distortion: bool = False,
                 budget_mb: float = 1024.0) -> Scene:
-    """Read a COLMAP scene; images resized to ``width`` (None = as stored in ``images``).
+    """Read a COLMAP scene; images resized to ``width`` (None = as stored in ``images``, but at
+    most ``MAX_DEFAULT_WIDTH`` px wide, 3DGS's rule).
 
     Splits: ``train`` and ``test`` by the LLFF hold-out (every ``llff_hold``-th image in name
     order is a test view), and ``all`` in name order.
@@ -103,7 +108,7 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
         if not path.exists():
             raise DataError(f"{path}: image of the COLMAP model is missing")
     file_w, file_h = image_size(paths[0])
-    w = width or file_w
+    w = width or min(file_w, MAX_DEFAULT_WIDTH)
     h = round(file_h * w / file_w)
     viewmats, ks = [], []
     for im, path in zip(entries, paths):

@@ -51,9 +51,21 @@ class FitConfig:
     init_points: int = 100_000       # random init in the scene box when there is no point cloud
     init_opacity: float = 0.1
     seed: int = 0
+    lr_decay_iterations: int | None = None  # the means' lr decays over this many (None: iterations)
 
     def with_changes(self, **changes) -> "FitConfig":
         return replace(self, **changes)
+
+    def first_iterations(self, iterations: int) -> "FitConfig":
+        """The first ``iterations`` steps of this recipe, schedules unchanged: densification,
+        resets, SH steps and the learning-rate decay keep their iteration numbers (a 3DGS run
+        stopped early). A recipe no longer than ``iterations`` is returned as is."""
+        if iterations <= 0:
+            raise ValueError(f"iterations must be positive, got {iterations}")
+        if iterations >= self.iterations:
+            return self
+        return replace(self, iterations=iterations,
+                       lr_decay_iterations=self.lr_decay_iterations or self.iterations)
 
     def scaled_to(self, iterations: int) -> "FitConfig":
         """The same recipe over ``iterations`` steps: every schedule scales proportionally."""

@@ -116,7 +116,8 @@ class Trainer:
         return min(self.config.sh_degree, self.step // max(self.config.sh_degree_interval, 1))
 
     def _means_lr(self) -> float:
-        lr, t = self.config.lr, min(self.step / max(self.config.iterations, 1), 1.0)
+        horizon = self.config.lr_decay_iterations or self.config.iterations
+        lr, t = self.config.lr, min(self.step / max(horizon, 1), 1.0)
         return self.extent * math.exp((1 - t) * math.log(lr.means_init) + t * math.log(lr.means_final))
 
     def state_dict(self) -> dict:
