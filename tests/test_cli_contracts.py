@@ -47,8 +47,16 @@ def test_config_hash_changes_with_anything_computed():
 
 def test_config_hash_golden_value():
     """Pinned: a change here means every finished job of every existing sweep would be rerun (or
-    a changed job skipped). Update it only on purpose, and say so in the change."""
-    assert first_job()["config_hash"] == "5b06dfba81dfd51f"
+    a changed job skipped). Update it only on purpose, and say so in the change.
+    Changed on purpose for results revision "fidelity-1" (issue 26; was 5b06dfba81dfd51f): the
+    fidelity fixes change what every job computes, so no result of the code before them is reused."""
+    assert first_job()["config_hash"] == "5a8deb5236736840"
+
+
+def test_the_results_revision_is_part_of_the_hash():
+    job = first_job()
+    assert job["results_revision"] == "fidelity-1"
+    assert config_hash({**job, "results_revision": "fidelity-0"}) != job["config_hash"]
 
 
 def test_config_hash_is_the_hash_of_the_job_without_execution_keys():
