@@ -39,9 +39,10 @@ def scene_extent(cameras: Cameras, what: str = "the training cameras") -> float:
 
     It scales the means' learning rate and the densification thresholds, so an extent of zero
     (one camera, or every centre at one point) is refused, naming ``what``, not divided by."""
-    centers = cameras.centers.double()
-    radius = float((centers - centers.mean(0)).norm(dim=1).max()) if len(cameras) else 0.0
-    if not radius > 1e-9 * max(1.0, float(centers.abs().max()) if len(cameras) else 1.0):
+    centers = cameras.centers.double().reshape(-1, 3)
+    radius = float((centers - centers.mean(0)).norm(dim=1).max()) if len(centers) else 0.0
+    rounding = 1e-9 * max(1.0, float(centers.abs().max()) if len(centers) else 1.0)  # far from 0
+    if not radius > rounding:
         raise ValueError(f"{what}: the scene extent is zero ({len(cameras)} camera(s), every centre "
                          f"at one point); 3DGS scales the learning rate of the means and the "
                          f"densification thresholds by it, so it needs cameras at two places at least")
