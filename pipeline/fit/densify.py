@@ -103,9 +103,9 @@ def densify_and_prune(params: dict[str, Tensor], optimizer: torch.optim.Optimize
     drop |= torch.sigmoid(params["logit_opacities"].detach()) < cfg.min_opacity
     if prune_large:
         radii = torch.cat([stats.max_radii, stats.max_radii.new_zeros(total - n)])
-        world = torch.exp(params["log_scales"].detach()).max(dim=1).values
         drop |= radii > cfg.max_screen_radius
         if cfg.max_world_scale is not None:
+            world = torch.exp(params["log_scales"].detach()).max(dim=1).values
             drop |= world > cfg.max_world_scale * extent
     if bool(drop.all()):  # never prune the scene away entirely
         drop[torch.argmax(params["logit_opacities"].detach())] = False

@@ -336,22 +336,17 @@ def compositing_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, radi
     psi = intersection_coeffs(bins, means2d, conics, opacities)
     phi = tile_monomials(tile_size, means2d.dtype, means2d.device)
     done = outside_image(bins, width, height, means2d.device)
-    trans = psi.new_ones(done.shape).masked_fill_(done, 0.0)
+    # the compositor's own forward walk, with no features: its chunk records hold alpha and T
+    _, _, records = composite_forward(psi, psi.new_zeros(psi.shape[0], 0), bins, phi, done, chunk)
     ts = tile_size
     pixels, gaussians, weights = [], [], []
-    for active, pos, valid in _walk(bins, done, chunk):
-        st = _chunk_state(phi, _chunk_psi(psi, pos, valid), trans[active])
-        keep = (st["weights"] > 0) & valid[:, None, :]  # [Ta, P, K]
-        ti, pi, ki = torch.nonzero(keep, as_tuple=True)
-        tile = active[ti]
-        row = (tile // bins.tiles_x) * ts + pi // ts
-        col = (tile % bins.tiles_x) * ts + pi % ts
-        pixels.append(row * width + col)
-        gaussians.append(bins.gauss_ids[pos[ti, ki]])
-        weights.append(st["weights"][ti, pi, ki])
-        ends = st["ends"]
-        trans[active] = st["trans_after"].masked_fill(ends, 0.0)
-        done[active] = done[active] | ends
+    for rec in records:
+        w = rec.alpha * rec.t_excl  # [Ta, P, K]
+        ti, pi, ki = torch.nonzero((w > 0) & rec.valid[:, None, :], as_tuple=True)
+        tile = rec.active[ti]
+        pixels.append(((tile // bins.tiles_x) * ts + pi // ts) * width + (tile % bins.tiles_x) * ts + pi % ts)
+        gaussians.append(bins.gauss_ids[rec.pos[ti, ki]])
+        weights.append(w[ti, pi, ki])
     if not pixels:
         empty = means2d.new_zeros(0, dtype=torch.long)
         return CompositingWeights(empty, empty.clone(), means2d.new_zeros(0), width, height)
