@@ -9,10 +9,11 @@ scales every likelihood term, so the Laplace posterior would be
     Sigma^-1 = tau^-2 H_train + lambda,  Sigma_x^-1 = Sigma^-1 + tau^-2 F_x        (Eq. 5)
 and the score terms become log(1 + M_i / (H_i + F_i + lambda tau^2)): as tau -> 0 the goal M
 still weighs every parameter, so under that reading the paper's ablation claim ("taking the limit
-tau -> 0, under which the Goal Hessian loses its effect on the candidate ranking", Sec. 6) is false.
+tau -> 0, under which the Goal Hessian loses its effect on the candidate ranking", Sec. 4,
+Analysis) is false.
 The paper instead fixes the posterior at tau = 1 ("we set tau = 1", as FisherRF: Sigma = (H + lambda)^-1,
 Sigma_x = (Sigma^-1 + F_x)^-1) and lets tau^2 enter "the acquisition score as a precision-scale
-parameter" (Appendix, ablation "w/o observation noise"):
+parameter" (the same paragraph, ablation "w/o observation noise"):
     score_tau(x) = log det(I + tau^-2 Sigma_x^1/2 M Sigma_x^1/2) = sum_i log1p(Sx_i M_i / tau^2)  (Eq. 8)
 That is what this module implements: ``updated_variance`` and the greedy update H <- H + F_pick
 (``acquisition.base.greedy_pick``) use the unit-noise posterior, and tau appears only in the score.
