@@ -3,6 +3,7 @@
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.acquisition.base import (Selection, SelectionContext, Strategy, probe_count, reduce_pool,
                                        sample_probes)
+from pipeline.acquisition.cover import CoverStrategy
 from pipeline.acquisition.coverage import CoverageStrategy
 from pipeline.acquisition.fisherrf import FisherRFStrategy
 from pipeline.acquisition.gaussmi import GaussMIStrategy
@@ -13,6 +14,7 @@ from pipeline.acquisition.random import RandomStrategy
 REGISTRY = {
     "random": RandomStrategy,
     "coverage": CoverageStrategy,
+    "cover": CoverStrategy,
     "fisherrf": FisherRFStrategy,
     "popgs": PopGSStrategy,
     "gopre": GoPreStrategy,
