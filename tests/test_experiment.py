@@ -22,6 +22,8 @@ from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.records import RecordsFile, records_from_mlflow
 from pipeline.experiment.sweep import run_sweep
+from pipeline.report.paper import load_paper_tables, paper_report
+from pipeline.report.report import load_records
 
 PRESETS = sorted(Path(p).stem for p in glob.glob(str(CONF_DIR / "experiment" / "*.yaml")))
 TINY = ["splat=tiny", "splat.iterations=100", "dataset=[generated]", "dataset.generated.generate.size=32",
@@ -104,6 +106,11 @@ def test_every_preset_runs_in_its_tiny_form(preset, base):
     cfg.sweep = OmegaConf.create({k: {kk: [v[0]] for kk, v in vals.items()} for k, vals in cfg.sweep.items()})
     summary = run_sweep(cfg)
     assert summary.failed == 0 and summary.finished == summary.jobs >= 1
+    _, paper_tables = load_paper_tables()
+    if preset in paper_tables:  # `pipeline-report --paper` on the preset's own tiny sweep
+        text = paper_report(load_records(base / ("tiny_" + preset)))
+        assert text.startswith(f"## Beside the paper: {paper_tables[preset].paper}")
+        assert "claims about this table" in text or "No finished episode" in text
 
 
 def test_unknown_keys_and_bad_values_fail_at_start_up_naming_the_key(base):

@@ -4,6 +4,8 @@
     pipeline-report outputs/table1_global --out reports/table1
     pipeline-report outputs/science --reference fisherrf   # paired differences against fisherrf
     pipeline-report outputs/science --seeds 0,1,2          # only complete seeds
+    pipeline-report outputs/table1_global --paper           # beside the paper's Table 1 (paper.md)
+    pipeline-report outputs/science --paper table2_goal     # the study's goal runs beside Table 2
     pipeline-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
 
 Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
@@ -29,6 +31,9 @@ def main(argv=None) -> int:
                         help="only these seeds, e.g. 0,1,2 (a sweep stopped inside a later seed)")
     parser.add_argument("--reference", default=None,
                         help="method the paired comparisons are against (default: gopre when it ran)")
+    parser.add_argument("--paper", nargs="?", const="auto", default=None, metavar="TABLE",
+                        help="also print the sweep beside the paper's table (paper.md): the table the "
+                             "sweep's name maps to, or TABLE (table1_global ... table6_pool)")
     args = parser.parse_args(argv)
     try:
         if args.mlflow_uri or args.experiment:
@@ -50,10 +55,16 @@ def main(argv=None) -> int:
                 raise ValueError(f"no records for seeds {sorted(seeds)}")
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
         summary = make_report(source, out, frame, args.reference)
+        if args.paper is not None:
+            from pipeline.report.paper import paper_report
+            beside = paper_report(frame, None if args.paper == "auto" else args.paper)
+            (Path(summary["out"]) / "paper.md").write_text(beside)
     except (FileNotFoundError, ValueError) as err:
         print(f"pipeline-report: error: {err}", file=sys.stderr)
         return 1
     print(summary["tables"])
+    if args.paper is not None:
+        print(beside)
     print(f"report written to {summary['out']}/report.md ({summary['runs']} runs, {summary['failed']} failed); "
           f"figures: {', '.join(summary['figures']) or 'none'}")
     return 0
