@@ -329,10 +329,18 @@ class ViewFactors:
     walk: ViewWalk
     column_factor: Tensor | None = None
 
+    @property
+    def width(self) -> int:
+        """P, the Fisher's entries per Gaussian."""
+        return sum(w for _, w in self.jacobian.layout)
+
     def fisher_diagonal(self, n: int) -> Tensor:
         """diag(A^T G A) for all n Gaussians, [N, P] float64 (times ``column_factor``)."""
-        width = sum(w for _, w in self.jacobian.layout)
-        out = self.feature_fisher.new_zeros(n, width)
+        return self.write_fisher_diagonal(self.feature_fisher.new_zeros(n, self.width))
+
+    def write_fisher_diagonal(self, out: Tensor) -> Tensor:
+        """``fisher_diagonal`` written into ``out`` [N, P] float64 that holds zeros (the rows of
+        Gaussians the walk did not reach stay zero); returns ``out``."""
         diag = self.jacobian.fisher_diagonal(self.feature_fisher)
         out[self.seen] = diag if self.column_factor is None else diag * self.column_factor
         return out
@@ -407,9 +415,14 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
     P = the selected raw parameters per Gaussian in ``param_layout`` order. Gaussians that no
     pixel sees get exactly zero.
     """
-    n = len(gaussians)
-    return torch.stack([f.fisher_diagonal(n) for f in
-                        view_factors(gaussians, cameras, background, spec, settings)])
+    if len(cameras) == 0:
+        raise ValueError("view_fisher: no cameras (the Fisher of no view is not defined here)")
+    out = None
+    for c, factors in enumerate(view_factors(gaussians, cameras, background, spec, settings)):
+        if out is None:  # one [C, N, P] block, each view written in place (no per-view copy)
+            out = factors.feature_fisher.new_zeros(len(cameras), len(gaussians), factors.width)
+        factors.write_fisher_diagonal(out[c])
+    return out
 
 
 def predictive_variance_maps(gaussians: Gaussians, cameras: Cameras, posterior_var: Tensor,
