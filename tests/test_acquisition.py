@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from pipeline.acquisition import SelectionContext, make_strategy, reduce_pool
+from pipeline.acquisition import SelectionContext, make_strategy
+from pipeline.data.sampling import reduce_pool
 from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
 from pipeline.splat.scenes import random_scene, sphere_cameras
 
@@ -153,7 +154,7 @@ def test_activenerf_variance_grows_with_the_error_it_has_to_explain():
 
 
 def test_probe_count_and_sampling():
-    from pipeline.acquisition import probe_count, sample_probes
+    from pipeline.data.sampling import probe_count, sample_probes
     assert probe_count(25, 100) == 25 and probe_count(25, 10) == 10
     assert probe_count(0.125, 160) == 20 and probe_count(0.125, 3) == 1
     assert probe_count(25.0, 100) == 25 and probe_count(1.0, 10) == 1 and probe_count(1, 10) == 1  # counts

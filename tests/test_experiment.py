@@ -415,6 +415,9 @@ def test_round_progress_reaches_the_driver_and_mlflow_while_jobs_run(executor, b
         assert ", 2 views, " in mine[0] and ", 3 views, " in mine[1]
         done = next(i for i, ln in enumerate(lines) if f"| {method} on " in ln)
         assert lines.index(mine[-1]) < done  # heard before the job's end line
+    logged = (out / "sweep.log").read_text().splitlines()  # the same lines, timestamped
+    assert [ln.split(" INFO ", 1)[1] for ln in logged if " INFO [debug]" in ln] == \
+        [ln for ln in lines if ln.startswith("[debug]")]
     from mlflow import MlflowClient
     client = MlflowClient(summary.tracking_uri)
     exp = client.get_experiment_by_name("debug")

@@ -14,7 +14,7 @@ import torch
 from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
 from pipeline.splat import Gaussians, RenderSettings, compiled, render
 from pipeline.splat.project import project
-from pipeline.splat.render import BACKENDS as REGISTERED_BACKENDS
+from pipeline.splat.backend import COMPOSITORS as REGISTERED_BACKENDS
 from tests.conftest import shared_scene
 
 # every backend, including any added later; the compiled one where it can load

@@ -107,7 +107,7 @@ def test_each_backend_projects_with_its_own_projector(monkeypatch):
     import importlib
 
     from pipeline.splat import compiled
-    render_module = importlib.import_module("pipeline.splat.render")  # the package exports render()
+    render_module = importlib.import_module("pipeline.splat.backend")  # the package exports render()
     if compiled.load() is None:
         pytest.skip(f"compiled backend unavailable: {compiled.load_error()}")
     calls = []
@@ -126,10 +126,10 @@ def test_render_passes_the_settings_performance_knobs_to_its_compositor(monkeypa
     """Tile size, chunk and the dense pixel block never change a value (tested elsewhere), so only
     the compositor's arguments show that a render honours them."""
     import importlib
-    render_module = importlib.import_module("pipeline.splat.render")
+    render_module = importlib.import_module("pipeline.splat.backend")
     seen = {}
-    for name, fn in list(render_module.BACKENDS.items()):
-        monkeypatch.setitem(render_module.BACKENDS, name,
+    for name, fn in list(render_module.COMPOSITORS.items()):
+        monkeypatch.setitem(render_module.COMPOSITORS, name,
                             lambda *a, _f=fn, _n=name, **kw: (seen.setdefault(_n, kw), _f(*a, **kw))[1])
     cams = orbit_cameras(1, 8, 8)
     render(good(), cams, settings=RenderSettings(backend="tiles", tile_size=4, chunk=5))

@@ -1,8 +1,7 @@
 """Acquisition strategies behind one protocol, with an explicit registry (no import magic)."""
 
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
-from pipeline.acquisition.base import (Selection, SelectionContext, Strategy, probe_count, reduce_pool,
-                                       sample_probes)
+from pipeline.acquisition.base import Selection, SelectionContext, Strategy
 from pipeline.acquisition.cover import CoverStrategy
 from pipeline.acquisition.coverage import CoverageStrategy
 from pipeline.acquisition.fisherrf import FisherRFStrategy
@@ -33,5 +32,4 @@ def make_strategy(name: str, **options) -> Strategy:
         raise ValueError(f"strategy {name!r}: bad options {sorted(options)} ({err})") from None
 
 
-__all__ = ["REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy", "probe_count",
-           "reduce_pool", "sample_probes"]
+__all__ = ["REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy"]

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pipeline.acquisition.base import (Selection, SelectionContext, greedy_pick, pool_and_train_fishers,
                                        timed_selection)
 from pipeline.fisher.exact import FisherSpec
+from pipeline.fisher.posterior import POSTERIOR_LAMBDA
 
 FISHERRF_GROUPS = ("means", "log_scales", "logit_opacities", "sh0", "shN")
 
@@ -21,7 +22,7 @@ FISHERRF_GROUPS = ("means", "log_scales", "logit_opacities", "sh0", "shN")
 @dataclass
 class FisherRFStrategy:
     name: str = "fisherrf"
-    lam: float = 1e-6
+    lam: float = POSTERIOR_LAMBDA
     hessian: str = "exact"
     spec: FisherSpec = field(init=False)
 

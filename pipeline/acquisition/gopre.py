@@ -18,7 +18,7 @@ from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vecto
                                        pool_and_train_fishers, timed_selection)
 from pipeline.fisher.exact import FisherSpec
 from pipeline.fisher.features import PARAM_GROUPS
-from pipeline.fisher.posterior import (goal_hessian, gopre_limit_score, gopre_score,
+from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score, gopre_score,
                                        monte_carlo_score, posterior_variance, trace_score,
                                        updated_variance)
 
@@ -31,7 +31,7 @@ FISHER_GROUPS = {"all": PARAM_GROUPS, "without_sh_rest": tuple(g for g in PARAM_
 @dataclass
 class GoPreStrategy:
     name: str = "gopre"
-    lam: float = 1e-6
+    lam: float = POSTERIOR_LAMBDA
     tau: float = 1.0
     goal: str = "probes"
     score: str = "logdet"

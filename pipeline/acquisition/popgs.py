@@ -16,6 +16,7 @@ import torch
 from pipeline.acquisition.base import (Selection, SelectionContext, greedy_pick, pool_and_train_fishers,
                                        timed_selection)
 from pipeline.fisher.exact import FisherSpec, view_factors
+from pipeline.fisher.posterior import POSTERIOR_LAMBDA
 
 BLOCK_GROUPS = ("means", "log_scales", "quats", "logit_opacities", "sh0")
 VARIANTS = ("diag", "block")
@@ -24,7 +25,7 @@ VARIANTS = ("diag", "block")
 @dataclass
 class PopGSStrategy:
     name: str = "popgs"
-    lam: float = 1e-6
+    lam: float = POSTERIOR_LAMBDA
     variant: str = "diag"
     spec: FisherSpec = FisherSpec()
     block_spec: FisherSpec = FisherSpec(groups=BLOCK_GROUPS)

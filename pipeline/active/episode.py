@@ -21,12 +21,12 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline.acquisition import SelectionContext, make_strategy, reduce_pool, sample_probes
+from pipeline.acquisition import SelectionContext, make_strategy
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
-from pipeline.acquisition.base import seeded_subset
 from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
 from pipeline.data.scene import Scene
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
 from pipeline.fit.init import from_point_cloud, random_in_box

@@ -21,15 +21,16 @@ import torch
 
 from pipeline.acquisition import SelectionContext
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
-from pipeline.acquisition.base import seeded_subset
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import initial_gaussians, uniform_subset
 from pipeline.cameras import Cameras
+from pipeline.data.sampling import seeded_subset
 from pipeline.data.scene import Scene
 from pipeline.eval.metrics import evaluate_views
 from pipeline.eval.sparsification import DECILES, ause, oracle_curve, random_curve, sparsification_curve
 from pipeline.fisher.exact import FisherSpec, predictive_variance_maps, view_fisher
-from pipeline.fisher.posterior import posterior_variance, predictive_entropy
+from pipeline.fisher.posterior import predictive_entropy
+from pipeline.fisher.variance import POSTERIOR_LAMBDA, taken_views_posterior
 from pipeline.fit.config import FitConfig
 from pipeline.fit.trainer import Trainer
 from pipeline.splat import Gaussians, render
@@ -43,7 +44,7 @@ class UncertaintyConfig:
     iterations: int = 2000
     test_views: int | None = None     # a uniform subset of the test split (None: all)
     methods: tuple[str, ...] = METHODS
-    lam: float = 1e-6
+    lam: float = POSTERIOR_LAMBDA
     tau: float = 1.0
     map_views: int = 4                # per-pixel uncertainty maps for this many test views
     seed: int = 0
@@ -60,8 +61,7 @@ def fisher_uncertainties(gaussians: Gaussians, train: Cameras, test: Cameras, ba
                          cfg: UncertaintyConfig) -> tuple[dict[str, np.ndarray], torch.Tensor]:
     """gopre entropy and fisherrf EIG of each test view [V]; and the posterior variance S [N, P]."""
     spec = FisherSpec()
-    h_train = view_fisher(gaussians, train, background, spec).sum(0)  # [N, P]
-    s = posterior_variance(h_train, cfg.lam)
+    h_train, s = taken_views_posterior(gaussians, train, background, spec, cfg.lam)  # [N, P] each
     entropy, eig = [], []
     outputs = test.width * test.height * 3
     for i in range(len(test)):

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from pipeline.acquisition.base import probe_count
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold, azimuths_deg, estimate_up, manifold_from_dict, member_ids
+from pipeline.data.sampling import probe_count
 from pipeline.data.scene import Scene
 
 KINDS = ("global", "goal", "sparse")

@@ -9,7 +9,6 @@ it to the driver, which prints it and logs it to the tracker.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import time
@@ -18,17 +17,15 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
-from PIL import Image
 
 from pipeline.active import RoundRecord, episode_plan, run_episode
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
+from pipeline.eval.images import colormap, png_bytes
 from pipeline.experiment.build import episode_config, uncertainty_config
-from pipeline.fisher.exact import predictive_variance_maps, view_fisher
-from pipeline.fisher.posterior import posterior_variance
+from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
 
 
@@ -38,26 +35,6 @@ def set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(threads)
-
-
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """[H, W, 3] in [0, 1] -> uint8 array."""
-    return (image.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-
-
-def png_bytes(image: torch.Tensor) -> bytes:
-    """[H, W, 3] in [0, 1] -> PNG bytes."""
-    buf = io.BytesIO()
-    Image.fromarray(to_uint8(image)).save(buf, format="PNG")
-    return buf.getvalue()
-
-
-def colormap(values: torch.Tensor) -> torch.Tensor:
-    """[H, W] non-negative -> [H, W, 3] (black -> red -> yellow -> white), scaled to the 99th
-    percentile so a few extreme pixels do not hide the rest."""
-    top = torch.quantile(values.flatten().double(), 0.99).to(values.dtype)
-    v = (values / top.clamp_min(1e-12)).clamp(0, 1)
-    return torch.stack([(3 * v).clamp(0, 1), (3 * v - 1).clamp(0, 1), (3 * v - 2).clamp(0, 1)], -1)
 
 
 def _log(folder: Path, line: str) -> None:
@@ -78,7 +55,6 @@ def round_message(rec: RoundRecord, rounds: int) -> dict:
             "seconds": round(rec.train_seconds + rec.selection_seconds, 2)}
 
 
-ROUND_IMAGE_LAMBDA = 1e-6  # the prior of the posterior behind the per-round variance maps
 
 
 def round_images(ep, rec, count: int) -> dict[str, bytes]:
@@ -91,7 +67,7 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     with torch.no_grad():
         renders = render(g, cams, bg).rgb.clamp(0, 1)
     taken = ep.pool.cameras[[i for i in ep.taken if i not in set(rec.selected)]]
-    maps = variance_maps(g, bg, taken, cams)
+    maps = variance_maps(g, taken, cams, bg)
     out = {}
     for i, view in enumerate(views):
         out[f"render_test_{view:04d}"] = png_bytes(renders[i])
@@ -101,18 +77,11 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     return out
 
 
-def variance_maps(g, background: torch.Tensor, taken, cams) -> torch.Tensor:
-    """Per-pixel predictive variance [C, H, W] of ``cams`` (sum over channels) under
-    S = 1 / (H_train + lambda) of the ``taken`` views."""
-    s = posterior_variance(view_fisher(g, taken, background).sum(0), ROUND_IMAGE_LAMBDA)
-    return predictive_variance_maps(g, cams, s, background).sum(-1)
-
-
 def uncertainty_rows(g, background: torch.Tensor, taken, cams, truth: torch.Tensor,
                      preds: torch.Tensor) -> list[torch.Tensor]:
     """One [H, 4W, 3] row per view of ``cams``: ground truth | render | squared error | per-pixel
     predictive variance of the ``taken`` views' posterior, each map on its own colour scale."""
-    maps = variance_maps(g, background, taken, cams)
+    maps = variance_maps(g, taken, cams, background)
     return [uncertainty_row(truth[i], preds[i], maps[i].to(preds)) for i in range(len(cams))]
 
 

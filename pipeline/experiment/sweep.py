@@ -19,6 +19,7 @@ from pipeline.data.protocols import build_protocol
 from pipeline.data.scene import Scene
 from pipeline.data.synthetic import generate
 from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
+from pipeline.experiment.console import console, sweep_log
 from pipeline.experiment.executor import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.lock import SweepLock, SweepLocked
@@ -26,6 +27,8 @@ from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
 from pipeline.splat import ply
+
+LOG = console()
 
 
 @dataclass
@@ -58,23 +61,23 @@ class Progress:
         self.job_seconds.append(outcome.get("seconds") or 0.0)
         eta = sum(self.job_seconds) / len(self.job_seconds) * left / self.slots  # jobs alike, slots full
         running = min(left, self.slots)
-        print(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
-              f"ETA {eta / 60:.1f} min | {job_label(job)}: {outcome['status']} "
-              f"{_headline(outcome)}", flush=True)
+        LOG.info(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
+                 f"ETA {eta / 60:.1f} min | {job_label(job)}: {outcome['status']} "
+                 f"{_headline(outcome)}")
         self.degraded(job, outcome)
 
     def round(self, job: dict, message: dict) -> None:
         """One line per finished round of a running job."""
         what = "final" if message["final"] else f"round {message['round'] + 1}/{message['rounds']}"
-        print(f"[{self.name}] {job_label(job)}: {what}, {message['num_views']} views, "
-              f"PSNR {message['test_psnr']:.2f} dB, {message['seconds']:.0f} s", flush=True)
+        LOG.info(f"[{self.name}] {job_label(job)}: {what}, {message['num_views']} views, "
+                 f"PSNR {message['test_psnr']:.2f} dB, {message['seconds']:.0f} s")
 
     def degraded(self, job: dict, outcome: dict) -> None:
         final = ((outcome.get("result") or {}).get("final")) or {}
         if final.get("degraded"):
-            print(f"[{self.name}] warning: {job_label(job)} ended on a degraded model: final PSNR "
-                  f"{final['curve_psnr_drop']:.2f} dB below its last round on the same views "
-                  "(flagged in the records, MLflow tag degraded=true)", flush=True)
+            LOG.warning(f"[{self.name}] warning: {job_label(job)} ended on a degraded model: final PSNR "
+                        f"{final['curve_psnr_drop']:.2f} dB below its last round on the same views "
+                        "(flagged in the records, MLflow tag degraded=true)")
 
 
 def job_label(job: dict) -> str:
@@ -115,7 +118,7 @@ def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
         path = Path(job["scene_path"]).resolve()
         if job.get("generate") and not (path / "transforms_test.json").exists():
             options = job["generate"]
-            print(f"generating the default scene into {path} ...", flush=True)
+            LOG.info(f"generating the default scene into {path} ...")
             generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
         try:
@@ -176,9 +179,9 @@ def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: P
     current = code_version()
     finished = {h: v for h, v in records.finished_versions().items() if h in skipped}
     for version, count in stale_versions(finished, current).items():
-        print(f"[{name}] note: {count} skipped job(s) were computed by code {version}, this is "
-              f"{current}; their results are kept. Use a new output_dir to recompute them "
-              f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).", flush=True)
+        LOG.info(f"[{name}] note: {count} skipped job(s) were computed by code {version}, this is "
+                 f"{current}; their results are kept. Use a new output_dir to recompute them "
+                 f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).")
 
 
 def execution_order(jobs: list[dict]) -> list[dict]:
@@ -196,13 +199,18 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
         lock = SweepLock(output_dir).acquire()
     except SweepLocked as err:
         raise ConfigError(str(err)) from None
-    if lock.stale is not None:
-        print(f"[{cfg.name}] note: took over a stale lock of a sweep that no longer runs "
-              f"(pid {lock.stale.get('pid')}, since {lock.stale.get('since')})", flush=True)
     try:
-        return _run_sweep(cfg, jobs, output_dir, start, stale_driver=lock.stale is not None)
+        with sweep_log(output_dir):
+            return _locked_sweep(cfg, jobs, output_dir, start, lock)
     finally:
         lock.release()
+
+
+def _locked_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float, lock) -> SweepSummary:
+    if lock.stale is not None:
+        LOG.info(f"[{cfg.name}] note: took over a stale lock of a sweep that no longer runs "
+                 f"(pid {lock.stale.get('pid')}, since {lock.stale.get('since')})")
+    return _run_sweep(cfg, jobs, output_dir, start, stale_driver=lock.stale is not None)
 
 
 def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float,
@@ -216,12 +224,12 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     if stale_driver:  # the last driver here was killed: its open runs will never be closed
         closed = tracker.close_stale_runs()
         if closed:
-            print(f"[{cfg.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
-                  f"marked KILLED", flush=True)
+            LOG.info(f"[{cfg.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
+                     f"marked KILLED")
     done = recorded | tracker.finished_hashes()
     todo = execution_order([j for j in jobs if j["config_hash"] not in done])
-    print(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
-          f"{len(todo)} to run; output in {output_dir}", flush=True)
+    LOG.info(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
+             f"{len(todo)} to run; output in {output_dir}")
     warn_stale(str(cfg.name), records, {j["config_hash"] for j in jobs} & done, output_dir)
     (output_dir / "jobs.json").write_text(json.dumps(jobs, indent=1))
     executor = make_executor(resolved["executor"])
@@ -239,8 +247,8 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             try:
                 run_id = tracker.log_job(job, outcome)
             except Exception as err:  # tracking trouble must not lose the job's records
-                print(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: "
-                      f"{str(err).splitlines()[0][:300]}", flush=True)
+                LOG.warning(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: "
+                            f"{str(err).splitlines()[0][:300]}")
                 run_id = None
                 untracked.append(job["config_hash"])
             save_artifacts(output_dir, job, outcome)
@@ -257,8 +265,7 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             try:
                 tracker.log_round(job, message)
             except Exception as err:  # tracking trouble must not stop the sweep
-                print(f"[{cfg.name}] warning: tracking a round failed for {job['config_hash']}: {err}",
-                      flush=True)
+                LOG.warning(f"[{cfg.name}] warning: tracking a round failed for {job['config_hash']}: {err}")
 
         try:
             with critical():
@@ -273,10 +280,10 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
                                    interrupted=interrupted, stopped_by=str(stop))
             tracker.interrupt(asdict(summary))
             (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
-            print(f"[{cfg.name}] {stop}: finished {finished}, failed {failed}, interrupted "
-                  f"{len(interrupted)}, not started {len(todo) - progress.done - len(interrupted)} of "
-                  f"{len(todo)} jobs; relaunch the same command to resume (interrupted jobs continue from "
-                  f"their last round checkpoint)", flush=True)
+            LOG.info(f"[{cfg.name}] {stop}: finished {finished}, failed {failed}, interrupted "
+                     f"{len(interrupted)}, not started {len(todo) - progress.done - len(interrupted)} of "
+                     f"{len(todo)} jobs; relaunch the same command to resume (interrupted jobs continue from "
+                     f"their last round checkpoint)")
             raise
     summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
                            len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri,
@@ -284,12 +291,11 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     try:
         tracker.end(asdict(summary))
     except Exception as err:
-        print(f"[{cfg.name}] warning: could not close the sweep's MLflow run: {str(err).splitlines()[0][:300]}",
-              flush=True)
+        LOG.warning(f"[{cfg.name}] warning: could not close the sweep's MLflow run: {str(err).splitlines()[0][:300]}")
     if untracked:
-        print(f"[{cfg.name}] {len(untracked)} finished job(s) could not be tracked ({', '.join(untracked)}); "
-              f"their results are in records.parquet and jobs/<hash>/: once the tracking server is back, "
-              f"relaunch the same command with tracking_sync=true", flush=True)
+        LOG.info(f"[{cfg.name}] {len(untracked)} finished job(s) could not be tracked ({', '.join(untracked)}); "
+                 f"their results are in records.parquet and jobs/<hash>/: once the tracking server is back, "
+                 f"relaunch the same command with tracking_sync=true")
     (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
     return summary
 
@@ -322,8 +328,8 @@ def sync_tracking(cfg: DictConfig) -> dict:
         records.add([{**r, "run_id": run_id} for r in
                       records.frame[records.frame["config_hash"] == config_hash].to_dict("records")])
         synced.append(config_hash)
-    print(f"[{cfg.name}] tracking sync: {len(synced)} run(s) replayed into {tracker.uri}, "
-          f"{len(have & set(jobs))} already there"
-          + (f", {len(unknown)} not replayable (not in this sweep's config, or no jobs/<hash>/artifacts/result.json): "
-             f"{', '.join(unknown)}" if unknown else ""), flush=True)
+    LOG.info(f"[{cfg.name}] tracking sync: {len(synced)} run(s) replayed into {tracker.uri}, "
+             f"{len(have & set(jobs))} already there"
+             + (f", {len(unknown)} not replayable (not in this sweep's config, or no jobs/<hash>/artifacts/result.json): "
+                f"{', '.join(unknown)}" if unknown else ""))
     return {"synced": synced, "unknown": unknown}

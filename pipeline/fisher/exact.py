@@ -371,35 +371,57 @@ def activated_once(jac: FeatureJacobian, log_scales: Tensor) -> tuple[FeatureJac
     return replace(jac, geometry=geometry, opacity_slope=torch.ones_like(slope)), factor
 
 
+@dataclass(frozen=True)
+class FisherBackend:
+    """The Fisher's twins resolved for one backend name (``splat.backend`` lists them):
+    ``project`` -> Projection; ``walk(proj, width, height, background, settings, channel_summed)``
+    -> (seen [M], G [M, 9, 9], the torch ``ViewWalk`` or None); ``jacobian`` -> FeatureJacobian."""
+
+    name: str
+    project: object
+    walk: object
+    jacobian: object
+
+
+def _compiled_walk(proj, width, height, background, settings, channel_summed):
+    seen, G = feature_fisher_compiled(proj, width, height, background, settings.tile_size,
+                                      channel_summed)
+    return seen, G, None
+
+
+def _torch_walk(proj, width, height, background, settings, channel_summed):
+    walk = ViewWalk(proj, width, height, background, settings)
+    seen, G = feature_fisher(walk, channel_summed)
+    return seen, G, walk
+
+
+def fisher_backend(settings: RenderSettings, device: torch.device) -> FisherBackend:
+    """The compiled walk when ``settings.backend`` resolves to ``compiled``, else the torch tile
+    walk (``tiles``; the dense and loop oracles have no Fisher walk of their own)."""
+    if compiled.resolve_backend(settings.backend, device) == "compiled":
+        return FisherBackend("compiled", compiled.project_compiled, _compiled_walk,
+                             feature_jacobian_compiled)
+    return FisherBackend("tiles", project, _torch_walk, feature_jacobian)
+
+
 def view_factors(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
                  spec: "FisherSpec" = None, settings: RenderSettings = RenderSettings()):
     """Yield one ``ViewFactors`` per camera: walk first, then the Jacobian of only the Gaussians
-    the walk reached (occluded and off-screen ones have zero Fisher).
-
-    The walk is the compiled one when ``settings.backend`` resolves to ``compiled``, else the
-    torch tile walk (``tiles``; the dense and loop oracles have no Fisher walk of their own).
-    """
+    the walk reached (occluded and off-screen ones have zero Fisher); ``fisher_backend`` picks
+    the compiled or the torch twins."""
     spec = spec or FisherSpec()
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
     gaussians.validate()
-    backend = compiled.resolve_backend(settings.backend, gaussians.means.device)
+    backend = fisher_backend(settings, gaussians.means.device)
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     bg = gaussians.means.new_zeros(3) if background is None else background
     for i in range(len(cams)):
         view = (cams.viewmats[i], cams.Ks[i], cams.width, cams.height)
-        projector = compiled.project_compiled if backend == "compiled" else project
         with torch.no_grad():
-            proj = projector(gaussians.detach(), *view, spec.sh_degree, settings.near)
-        if backend == "compiled":
-            walk = None
-            seen, G = feature_fisher_compiled(proj, cams.width, cams.height, bg, settings.tile_size,
-                                              spec.channel_summed)
-        else:
-            walk = ViewWalk(proj, cams.width, cams.height, bg, settings)
-            seen, G = feature_fisher(walk, spec.channel_summed)
-        jacobian = feature_jacobian_compiled if backend == "compiled" else feature_jacobian
-        jac = jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree, settings.near)
+            proj = backend.project(gaussians.detach(), *view, spec.sh_degree, settings.near)
+        seen, G, walk = backend.walk(proj, cams.width, cams.height, bg, settings, spec.channel_summed)
+        jac = backend.jacobian(gaussians.index(seen), *view, spec.groups, spec.sh_degree, settings.near)
         if spec.channel_summed:
             jac, factor = activated_once(jac, gaussians.log_scales[seen])
             yield ViewFactors(seen, jac, G, walk, factor)

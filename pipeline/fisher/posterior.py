@@ -36,7 +36,10 @@ import torch
 from torch import Tensor
 
 
-def posterior_variance(h_train: Tensor, lam: float = 1e-6) -> Tensor:
+POSTERIOR_LAMBDA = 1e-6  # lambda of S = 1 / (H_train + lambda): every strategy's and map's default
+
+
+def posterior_variance(h_train: Tensor, lam: float = POSTERIOR_LAMBDA) -> Tensor:
     """S = 1 / (H_train + lambda), the Laplace posterior variance [..., D]."""
     if lam <= 0:
         raise ValueError(f"lambda must be positive, got {lam}")

@@ -135,7 +135,7 @@ class CompiledBins:
         self.width, self.height, self.tile_size = width, height, tile_size
         self.tiles_x, self.tiles_y = -(-width // tile_size), -(-height // tile_size)
         self.packed = kernels.pack(to_numpy(means2d), to_numpy(conics), to_numpy(opacities))
-        rects = kernels.tile_rects(self.packed, to_numpy(radii).astype(np.int64), self.tiles_x,
+        rects = kernels.alpha_tile_rects(self.packed, to_numpy(radii).astype(np.int64), self.tiles_x,
                                    self.tiles_y, tile_size)
         self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(
             rects, kernels.depth_order(to_numpy(depths)), self.tiles_x, self.tiles_y)

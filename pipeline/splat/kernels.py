@@ -95,7 +95,7 @@ def _radix_order(keys, width):
 
 
 @njit(cache=True)
-def tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
+def alpha_tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
     """[N, 4] int64 half-open tile ranges (x0, x1, y0, y1); empty for radius 0 (culled).
 
     The 3DGS support rule (the tiles the square [u - r, u + r] x [v - r, v + r] touches),
@@ -137,7 +137,7 @@ def tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
 def bin_tiles(rects, depth_order, tiles_x, tiles_y):
     """Per-tile Gaussian lists in front-to-back order by a counting sort over tiles.
 
-    rects [N, 4] from ``tile_rects``; depth_order [N] Gaussian ids front to back (stable).
+    rects [N, 4] from ``alpha_tile_rects``; depth_order [N] Gaussian ids front to back (stable).
     Returns gauss_ids [I], offsets [T], counts [T]: tile t's list is
     gauss_ids[offsets[t]:offsets[t] + counts[t]], in the order of ``depth_order``.
     """

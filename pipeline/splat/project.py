@@ -17,6 +17,9 @@ from pipeline.splat.gaussians import Gaussians, scaled_rotations
 from pipeline.splat.sh import eval_sh
 
 EPS_2D = 0.3
+# The projection Jacobian is taken at x/z, y/z clamped to this multiple of the half field of view
+# (3DGS's rule: Gaussians far off-screen do not get huge screen-space footprints).
+CLAMP_FOV = 1.3
 # Largest 2D variance (px^2) a Gaussian may have and still be drawn: a standard deviation of about
 # 3e7 px. Beyond it the float32 products of the conic's backward could overflow; such Gaussians
 # (only ever seen right at the near plane) are culled like Gaussians behind the camera.
@@ -90,8 +93,8 @@ def project(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height
     z = torch.where(in_front, z, torch.ones_like(z))  # keeps culled rows finite (and their grads)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
-    lim_x = 1.3 * 0.5 * width / fx
-    lim_y = 1.3 * 0.5 * height / fy
+    lim_x = CLAMP_FOV * 0.5 * width / fx
+    lim_y = CLAMP_FOV * 0.5 * height / fy
     tx = z * torch.clamp(x / z, -lim_x, lim_x)
     ty = z * torch.clamp(y / z, -lim_y, lim_y)
     zero = torch.zeros_like(z)

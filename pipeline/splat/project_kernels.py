@@ -16,10 +16,9 @@ import numpy as np
 from numba import njit, prange
 
 from pipeline.splat.kernels import PRANGE_ONLY
-from pipeline.splat.project import EPS_2D, MAX_VARIANCE_2D  # the rules have one source
+from pipeline.splat.project import CLAMP_FOV, EPS_2D, MAX_VARIANCE_2D  # the rules have one source
 from pipeline.splat.sh import C0, C1, C2, C3
 
-CLAMP_FOV = 1.3
 
 
 @njit(cache=True, inline="always")

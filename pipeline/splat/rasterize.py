@@ -20,6 +20,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+# The public surface: the compositor and its sparse weights, and the tile walk's building blocks
+# that the exact Fisher (``fisher.exact``) walks with the same rules (bins, monomials, per-
+# intersection coefficients, the forward walk, untiling).
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "T_MIN", "TileBins", "ChunkRecord", "CompositingWeights",
+           "square_tile_rects", "depth_ranks", "bin_gaussians", "tile_monomials", "local_means",
+           "intersection_coeffs", "composite_forward", "untile", "outside_image", "rasterize",
+           "compositing_weights"]
+
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
@@ -45,7 +53,7 @@ class TileBins:
         return self.tiles_x * self.tiles_y
 
 
-def tile_rects(means2d: Tensor, radii: Tensor, tiles_x: int, tiles_y: int, tile_size: int):
+def square_tile_rects(means2d: Tensor, radii: Tensor, tiles_x: int, tiles_y: int, tile_size: int):
     """Half-open tile ranges [x0, x1) x [y0, y1) touched by each Gaussian's square; [N] each.
 
     A Gaussian with radius 0 (culled) gets an empty range.
@@ -77,7 +85,7 @@ def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, he
     n = means2d.shape[0]
     device = means2d.device
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    x0, x1, y0, y1 = tile_rects(means2d, radii, tiles_x, tiles_y, tile_size)
+    x0, x1, y0, y1 = square_tile_rects(means2d, radii, tiles_x, tiles_y, tile_size)
     nx, ny = (x1 - x0).clamp(min=0), (y1 - y0).clamp(min=0)
     per_gauss = nx * ny  # [N]
     gid = torch.repeat_interleave(torch.arange(n, device=device), per_gauss)  # [I]

@@ -8,16 +8,8 @@ import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
+from pipeline.splat.backend import BACKEND_NAMES, splat_backend
 from pipeline.splat.gaussians import Gaussians
-from pipeline.splat.compiled import project_compiled, rasterize_compiled, resolve_backend
-from pipeline.splat.project import project
-from pipeline.splat.rasterize import rasterize
-from pipeline.splat.reference import rasterize_dense, rasterize_loop
-
-# ``auto`` (see ``compiled.resolve_backend``): compiled on CPU tensors, tiles elsewhere
-BACKENDS = {"compiled": rasterize_compiled, "tiles": rasterize, "dense": rasterize_dense,
-            "loop": rasterize_loop}
-BACKEND_NAMES = ("auto", *BACKENDS)
 
 
 @dataclass
@@ -59,9 +51,7 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot render an empty scene (N = 0)")
     gaussians.validate()
-    backend = resolve_backend(settings.backend, gaussians.means.device)
-    composite = BACKENDS[backend]
-    projector = project_compiled if backend == "compiled" else project
+    backend = splat_backend(settings, gaussians.means.device)
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     if background is None:
         background = gaussians.means.new_zeros(3)
@@ -69,18 +59,13 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
         raise ValueError(f"background must be [3], got {tuple(background.shape)}")
     outputs = []
     for i in range(len(cams)):
-        proj = projector(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height,
+        proj = backend.project(gaussians, cams.viewmats[i], cams.Ks[i], cams.width, cams.height,
                          sh_degree, settings.near)
         feats = [proj.colors, proj.depths[:, None]]
         if extra_features is not None:
             feats.append(extra_features)
-        kwargs = {"tile_size": settings.tile_size}
-        if backend == "tiles":
-            kwargs["chunk"] = settings.chunk
-        elif backend == "dense":
-            kwargs["pixel_block"] = settings.dense_pixel_block
-        image, alpha = composite(proj.means2d, proj.conics, proj.opacities, torch.cat(feats, 1),
-                                 proj.radii, proj.depths, cams.width, cams.height, **kwargs)
+        image, alpha = backend.composite(proj.means2d, proj.conics, proj.opacities, torch.cat(feats, 1),
+                                         proj.radii, proj.depths, cams.width, cams.height)
         rgb = image[..., :3] + (1 - alpha)[..., None] * background
         depth = torch.where(alpha > 0, image[..., 3] / alpha.clamp_min(1e-10), torch.zeros_like(alpha))
         if extra_features is not None:

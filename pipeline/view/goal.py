@@ -13,9 +13,10 @@ from dataclasses import dataclass
 
 import torch
 
-from pipeline.acquisition import SelectionContext, make_strategy, sample_probes
+from pipeline.acquisition import SelectionContext, make_strategy
 from pipeline.data.manifolds import PoseListManifold, member_ids
 from pipeline.data.protocols import resolved_manifold
+from pipeline.data.sampling import sample_probes
 from pipeline.view.run import EpisodeRun, RoundState
 
 

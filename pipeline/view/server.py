@@ -19,9 +19,9 @@ import torch
 
 from pipeline.data.manifolds import SectorManifold
 from pipeline.data.protocols import resolved_manifold
-from pipeline.experiment.job import colormap, to_uint8
-from pipeline.fisher.exact import predictive_variance_maps, view_fisher
-from pipeline.fisher.posterior import posterior_variance
+from pipeline.eval.images import colormap, to_uint8
+from pipeline.fisher.exact import predictive_variance_maps
+from pipeline.fisher.variance import POSTERIOR_LAMBDA, taken_views_posterior
 from pipeline.splat import render
 from pipeline.view.geometry import (ROLE_COLOURS, camera_poses, lower_is_better, score_ranks,
                                     sector_outline, splat_arrays, standing_colour, vertical_fov)
@@ -293,9 +293,9 @@ class EpisodeViewer:
         if self.state.index not in self.variances:
             g, run = self.state.model, self.run
             background = run.scene.background.to(g.means)
-            h = view_fisher(g, run.pool.cameras[self.state.taken], background).sum(0)
-            lam = float(gopre_options(run).get("lam", 1e-6))
-            self.variances[self.state.index] = posterior_variance(h, lam)
+            lam = float(gopre_options(run).get("lam", POSTERIOR_LAMBDA))
+            _, self.variances[self.state.index] = taken_views_posterior(
+                g, run.pool.cameras[self.state.taken], background, lam=lam)
         return self.variances[self.state.index]
 
     def show_camera(self, key: CameraKey) -> None:
