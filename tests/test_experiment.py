@@ -126,6 +126,20 @@ def test_unknown_keys_and_bad_values_fail_at_start_up_naming_the_key(base):
         expand_jobs(composed(["splat.post_selection=restart"]))
 
 
+@pytest.mark.parametrize("override,match", [
+    ("splat.image_width=0", r"splat.image_width: expected an integer >= 1, got 0"),
+    ("splat.iterations=-5", r"splat.iterations: expected an integer >= 1"),
+    ("splat.max_gaussians=0", r"splat.max_gaussians: expected an integer >= 1"),
+    ("job.threads=0", r"job.threads: expected an integer >= 1, got 0"),
+    ("job.retries=-1", r"job.retries: expected an integer >= 0, got -1"),
+    ("job.renders=-2", r"job.renders: expected an integer >= 0"),
+    ("seeds=[-1]", r"seeds: expected a non-empty list of non-negative integers"),
+])
+def test_values_that_used_to_pass_silently_or_fail_late_are_config_errors(override, match):
+    with pytest.raises(ConfigError, match=match):
+        expand_jobs(composed(["dataset=[generated]", override]))
+
+
 def metrics_of(frame):
     final = frame[frame["kind"] == "final"].sort_values("method")
     rounds = frame[frame["kind"] == "round"].sort_values(["method", "num_views"])
@@ -526,3 +540,29 @@ def test_each_round_logs_renders_variance_maps_and_the_pick_as_mlflow_images(bas
     first_pick = json.loads(rounds["selected"].iloc[0])[0]  # picked with 2 views taken (a JSON list)
     for key in ("render_test_", "variance_test_", f"picked_{first_pick:04d}"):
         assert any(n.startswith(f"images/{key}") and "+step+2+" in n for n in names), (key, names)
+
+
+def test_a_truncated_image_the_protocol_uses_is_refused_before_any_job(base, tmp_path):
+    import shutil
+    from pipeline.experiment.sweep import validate_sweep
+    jobs = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", f"output_dir={tmp_path / 'o'}"]))
+    validate_sweep(jobs)  # generates the tiny scene when it is not there yet
+    scene = tmp_path / "copy"
+    shutil.copytree(Path(jobs[0]["scene_path"]).resolve(), scene)
+    victim = sorted((scene / "train").glob("*.png"))[3]
+    victim.write_bytes(victim.read_bytes()[:120])  # a truncated file: its header (and size) still read
+    for job in jobs:
+        job["scene_path"] = str(scene)
+    with pytest.raises(ConfigError, match=rf"{victim.name}: cannot read image"):  # named, at launch
+        validate_sweep(jobs)
+    validate_sweep(jobs, decode_images=False)  # the flag for datasets too large to read twice
+
+
+def test_the_end_of_a_sweep_says_how_to_open_its_runs_page():
+    from pipeline.experiment.tracking import mlflow_runs_hint
+    assert mlflow_runs_hint("http://host:5000/", "7") == "MLflow runs: http://host:5000/#/experiments/7/runs"
+    local = mlflow_runs_hint("sqlite:///o/mlflow.db", "3")
+    assert "mlflow ui --backend-store-uri sqlite:///o/mlflow.db" in local
+    assert local.endswith("http://127.0.0.1:5000/#/experiments/3/runs")
+    assert mlflow_runs_hint(None, None) is None
+

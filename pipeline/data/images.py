@@ -83,6 +83,21 @@ class ImageStore:
             self._bytes -= old.numel() * old.element_size()
         return img
 
+    def check_decodable(self, indices: list[int]) -> list[str]:
+        """Decode the images at ``indices`` (without caching them): one error message per file
+        that cannot be read at the store's size (zero-byte, truncated, wrong size ...)."""
+        errors = []
+        for i in indices:
+            try:
+                if self.source_size is not None and image_size(self.paths[i]) != tuple(self.source_size):
+                    got = image_size(self.paths[i])
+                    raise DataError(f"{self.paths[i]}: image is {got[0]}x{got[1]}, the scene's images "
+                                    f"are {self.source_size[0]}x{self.source_size[1]}")
+                read_image(self.paths[i], self.size, self.background)
+            except DataError as err:
+                errors.append(str(err))
+        return errors
+
     def subset(self, indices: list[int]) -> "ImageStore":
         """A store over some of these images (its own cache, the same budget)."""
         return ImageStore([self.paths[i] for i in indices], self.size, self.background,

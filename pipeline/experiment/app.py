@@ -23,7 +23,8 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.plan import plan_jobs, plan_text, slots
-from pipeline.experiment.sweep import run_sweep, sync_tracking
+from pipeline.experiment.sweep import run_sweep, sync_tracking, validate_sweep
+from pipeline.experiment.tracking import mlflow_runs_hint
 
 CONF_DIR = Path(os.environ.get("GOPRE_CONF", Path(__file__).resolve().parents[2] / "conf"))
 
@@ -53,6 +54,13 @@ def main(cfg: DictConfig) -> None:
         except ConfigError as err:
             print(f"pipeline-run: config error: {err}", file=sys.stderr)
             sys.exit(2)
+        try:  # the data as a real launch checks it (a scene still to be generated is not read)
+            validate_sweep([j for j in jobs if not (j.get("generate") and not (
+                Path(j["scene_path"]) / "transforms_test.json").exists())],
+                bool(cfg.get("validate_images", True)))
+        except ConfigError as err:
+            print(f"pipeline-run: config error: {err}", file=sys.stderr)
+            sys.exit(2)
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
         print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs)))
         return
@@ -74,6 +82,9 @@ def main(cfg: DictConfig) -> None:
     print(f"[{summary.name}] finished {summary.finished}, failed {summary.failed}, skipped {summary.skipped} "
           f"of {summary.jobs} jobs in {summary.seconds:.0f} s; records: {summary.output_dir}/records.parquet"
           + (f"; MLflow: {summary.tracking_uri}" if summary.tracking_uri else ""), flush=True)
+    hint = mlflow_runs_hint(summary.tracking_uri, summary.experiment_id)
+    if hint:
+        print(hint, flush=True)
     if summary.failed:
         sys.exit(min(summary.failed, 100))
 

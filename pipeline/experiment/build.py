@@ -97,9 +97,28 @@ def seeds_of(cfg: DictConfig) -> list[int]:
     seeds = _container(cfg, "seeds") if OmegaConf.is_config(value) else value  # a list node, or a scalar
     seeds = [seeds] if isinstance(seeds, int) and not isinstance(seeds, bool) else seeds
     if not isinstance(seeds, list) or not seeds or any(
-            isinstance(s, bool) or not isinstance(s, int) for s in seeds):
-        raise ConfigError(f"seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got {seeds!r}")
+            isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds):
+        raise ConfigError(f"seeds: expected a non-empty list of non-negative integers, e.g. "
+                          f"seeds=[0,1,2], got {seeds!r}")
     return seeds
+
+
+# job.* settings that must be integers of at least this value
+JOB_MINIMUMS = {"threads": 1, "retries": 0, "renders": 0, "round_images": 0}
+# splat.* values that are positive integers when set (null: the preset's)
+POSITIVE_SPLAT = ("iterations", "image_width", "max_gaussians")
+
+
+def _minimum(key: str, value, least: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ConfigError(f"{key}: expected an integer >= {least}, got {value!r}")
+
+
+def check_job_section(job_cfg: dict) -> None:
+    """``job.threads`` >= 1, ``job.retries``, ``job.renders``, ``job.round_images`` >= 0."""
+    for key, least in JOB_MINIMUMS.items():
+        if job_cfg.get(key) is not None:
+            _minimum(f"job.{key}", job_cfg[key], least)
 
 
 def expand_jobs(cfg: DictConfig) -> list[dict]:
@@ -112,6 +131,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
         raise ConfigError("method: no method selected")
     if job_cfg["kind"] not in JOB_KINDS:
         raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
+    check_job_section(job_cfg)
     jobs = []
     output_dir = Path(str(cfg.output_dir))
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
@@ -156,6 +176,9 @@ def episode_config(job: dict) -> EpisodeConfig:
     """The core's plain dataclass for a job (the core never sees a DictConfig)."""
     splat = dict(job["splat"])
     check_keys("splat", splat, SPLAT_KEYS)
+    for key in POSITIVE_SPLAT:  # 0 is not "unset": it would silently mean the preset's value
+        if splat.get(key) is not None:
+            _minimum(f"splat.{key}", splat[key], 1)
     try:
         base = episode_preset(splat["preset"])
         fit = base.fit

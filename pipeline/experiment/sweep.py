@@ -44,6 +44,7 @@ class SweepSummary:
     interrupted: list[str] = field(default_factory=list)  # config hashes a stop signal cut short
     stopped_by: str | None = None
     untracked: list[str] = field(default_factory=list)  # finished jobs MLflow did not receive
+    experiment_id: str | None = None  # the MLflow experiment of the sweep (None: no tracking)
 
 
 class Progress:
@@ -134,10 +135,13 @@ def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
     return scenes, errors
 
 
-def protocol_errors(jobs: list[dict], scenes: dict[str, Scene]) -> list[str]:
+def protocol_errors(jobs: list[dict], scenes: dict[str, Scene], decode: bool = True) -> list[str]:
     """One error per (scene, protocol) that does not fit the scene (budget, initial views, an
-    empty sector ...), found by building the protocol's views before any job starts."""
+    empty sector ...), found by building the protocol's views before any job starts; with
+    ``decode``, one per image those views use that cannot be decoded (a zero-byte file would
+    otherwise fail the job that happens to pick it, mid-sweep)."""
     errors, checked = [], set()
+    used: dict[tuple[str, str], set[int]] = {}
     for job in jobs:
         if job["kind"] != "episode" or scene_key(job) not in scenes:
             continue
@@ -146,10 +150,17 @@ def protocol_errors(jobs: list[dict], scenes: dict[str, Scene]) -> list[str]:
             continue
         checked.add(key)
         try:
-            build_protocol(scenes[scene_key(job)], episode_config(job).protocol)
+            views = build_protocol(scenes[scene_key(job)], episode_config(job).protocol)
         except ValueError as err:
             where = f" ({job['setting']})" if job.get("setting") else ""
             errors.append(f"protocol on dataset.{job['dataset']} scene {job['scene']!r}{where}: {err}")
+            continue
+        used.setdefault((scene_key(job), views.pool_split), set()).update(
+            views.initial_ids + views.pool_ids + views.probe_ids)
+        used.setdefault((scene_key(job), views.test_split), set()).update(views.test_ids)
+    if decode:
+        for (key, split), ids in used.items():
+            errors += scenes[key].split(split).images.check_decodable(sorted(ids))
     return errors
 
 
@@ -164,11 +175,12 @@ def init_errors(jobs: list[dict]) -> list[str]:
     return errors
 
 
-def validate_sweep(jobs: list[dict]) -> dict[str, Scene]:
-    """Read every scene and build every protocol before Ray or MLflow start; all problems are
-    reported at once as one ConfigError (one line each)."""
+def validate_sweep(jobs: list[dict], decode_images: bool = True) -> dict[str, Scene]:
+    """Read every scene, build every protocol and (``decode_images``) decode every image the
+    protocols use, before Ray or MLflow start; all problems are reported at once as one
+    ConfigError (one line each)."""
     scenes, errors = prepare_scenes(jobs)
-    errors += protocol_errors(jobs, scenes) + init_errors(jobs)
+    errors += protocol_errors(jobs, scenes, decode_images) + init_errors(jobs)
     if errors:
         raise ConfigError(f"{len(errors)} problem(s), nothing was started:\n  " + "\n  ".join(errors))
     return scenes
@@ -219,7 +231,8 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     (output_dir / "sweep_config.json").write_text(json.dumps(resolved, indent=1, default=str))
     records = RecordsFile(output_dir)
     recorded = records.finished_hashes()
-    scenes = validate_sweep([j for j in jobs if j["config_hash"] not in recorded])
+    scenes = validate_sweep([j for j in jobs if j["config_hash"] not in recorded],
+                            bool(cfg.get("validate_images", True)))
     tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
     if stale_driver:  # the last driver here was killed: its open runs will never be closed
         closed = tracker.close_stale_runs()
@@ -277,7 +290,8 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             finished = progress.done - failed
             summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
                                    finished, failed, round(time.perf_counter() - start, 1), tracker.uri,
-                                   interrupted=interrupted, stopped_by=str(stop))
+                                   interrupted=interrupted, stopped_by=str(stop),
+                                   experiment_id=getattr(tracker, "experiment_id", None))
             tracker.interrupt(asdict(summary))
             (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
             LOG.info(f"[{cfg.name}] {stop}: finished {finished}, failed {failed}, interrupted "
@@ -287,7 +301,7 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             raise
     summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
                            len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri,
-                           untracked=untracked)
+                           untracked=untracked, experiment_id=getattr(tracker, "experiment_id", None))
     try:
         tracker.end(asdict(summary))
     except Exception as err:

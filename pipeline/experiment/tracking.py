@@ -293,3 +293,17 @@ def make_tracker(cfg: dict, output_dir: Path, experiment: str):
     if kind == "mlflow":
         return MlflowTracker(cfg.get("uri"), output_dir, experiment)
     raise ValueError(f"tracking.kind: must be 'mlflow' or 'none', got {kind!r}")
+
+
+def mlflow_runs_hint(uri: str | None, experiment_id: str | None) -> str | None:
+    """How to open a sweep's runs in the MLflow UI, with the runs page's address (MLflow 3
+    otherwise opens on its GenAI page): a served store's URL, or the ``mlflow ui`` command for
+    a local store. None without tracking."""
+    if not uri or experiment_id is None:
+        return None
+    page = f"#/experiments/{experiment_id}/runs"
+    if uri.startswith(("http://", "https://")):
+        return f"MLflow runs: {uri.rstrip('/')}/{page}"
+    return (f"MLflow runs: mlflow ui --backend-store-uri {uri} --port 5000, then open "
+            f"http://127.0.0.1:5000/{page}")
+
