@@ -42,3 +42,18 @@ def test_an_unreadable_init_ply_is_refused_before_any_job(tmp_path):
     proc = subprocess.run([str(BIN / "pipeline-run"), "experiment=debug", f"output_dir={tmp_path / 'o'}",
                            f"+splat.init=ply:{tmp_path / 'bad.ply'}"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and f"splat.init: {tmp_path / 'bad.ply'}: only binary little-endian PLY" in proc.stderr
+
+
+def test_multirun_is_refused_with_the_one_sweep_syntax_and_help_is_ours(tmp_path):
+    proc = subprocess.run([str(BIN / "pipeline-run"), "-m", "method=gopre,random",
+                           f"output_dir={tmp_path / 'o'}"], capture_output=True, text=True, timeout=300,
+                          cwd=tmp_path)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "'method=[gopre,random]'" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "multirun").exists() and not (tmp_path / "o" / "jobs").exists()
+    helped = subprocess.run([str(BIN / "pipeline-run"), "--help"], capture_output=True, text=True, timeout=300)
+    assert helped.returncode == 0 and helped.stdout.startswith("pipeline-run: launch one sweep")
+    for needle in ("plan=true", "tracking_sync=true", "+sweep.protocol.probes", "Presets (experiment=...)",
+                   "method: activenerf, cover, coverage"):
+        assert needle in helped.stdout, needle
+

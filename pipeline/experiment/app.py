@@ -18,6 +18,8 @@ import sys
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.experiment.build import ConfigError, expand_jobs
@@ -48,6 +50,11 @@ register_resolvers()
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> None:
+    if HydraConfig.get().mode == RunMode.MULTIRUN:
+        print("pipeline-run: config error: -m / --multirun would launch several sweeps into one output "
+              "folder; give the values inside one sweep instead, e.g. 'method=[gopre,random]' or "
+              "+sweep.protocol.probes=[5,10]", file=sys.stderr)
+        sys.exit(2)
     if cfg.get("plan"):
         try:
             jobs = expand_jobs(cfg)
