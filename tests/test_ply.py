@@ -106,3 +106,26 @@ def test_an_episode_starts_from_a_ply_with_its_sh_fitted_to_the_degree(tmp_path)
     assert padded.shN.shape == (20, 3, 3) and padded.shN.abs().sum() == 0
     with pytest.raises(ValueError, match="init must be 'ply:PATH' or null, got 'init.ply'"):
         cfg.with_changes(init="init.ply")
+
+
+def test_ascii_ply_with_extra_colour_and_normal_properties_reads_the_same_model(tmp_path):
+    """Other tools write ASCII PLY and add uchar colours and normals: the 3DGS properties are what
+    counts (the file is rewritten by plyfile, not by our code)."""
+    import numpy as np
+    from plyfile import PlyData, PlyElement
+    g = random_scene(50, seed=2, sh_degree=1)
+    binary = PlyData.read(str(ply.save(g, tmp_path / "m.ply")))["vertex"].data
+    extra = [("nx", "f4"), ("ny", "f4"), ("nz", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    table = np.zeros(len(binary), dtype=binary.dtype.descr + extra)
+    for name in binary.dtype.names:
+        table[name] = binary[name]
+    table["red"] = 200
+    PlyData([PlyElement.describe(table, "vertex")], text=True).write(str(tmp_path / "ascii.ply"))
+    assert (tmp_path / "ascii.ply").read_bytes().startswith(b"ply\nformat ascii 1.0")
+    back = ply.load(tmp_path / "ascii.ply")
+    for name, value in g.params().items():
+        assert torch.allclose(getattr(back, name), value.float(), rtol=1e-6, atol=1e-7), name
+    big = PlyData([PlyElement.describe(table.astype(table.dtype.newbyteorder(">")), "vertex")], byte_order=">")
+    big.write(str(tmp_path / "big.ply"))
+    assert torch.equal(ply.load(tmp_path / "big.ply").means, g.means.float())
+

@@ -4,11 +4,14 @@ The INRIA PLY (what every 3DGS viewer reads) stores the raw parameters as float3
 properties: x, y, z; f_dc_0..2 (SH DC per channel); f_rest_* (the higher SH coefficients,
 channel-major: all of red's, then green's, then blue's); opacity (the logit); scale_0..2 (log
 scales); rot_0..3 (the quaternion, w first). ``ply_compressed`` (SuperSplat) and ``splat``
-(antimatter15) are lossy viewer formats: written, not read back.
+(antimatter15) are lossy viewer formats: written, not read back. Reading goes through
+``plyfile`` (binary of either endianness or ASCII; extra properties such as normals or uchar
+colours are ignored).
 """
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -36,42 +39,37 @@ def save(gaussians: Gaussians, path: str | Path, fmt: str = "ply") -> Path:
     return path
 
 
-def _header(data: bytes, path: Path) -> tuple[int, list[tuple[str, str]], int]:
-    """(vertex count, [(type, name)] of the vertex element, byte offset of the body)."""
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise ValueError(f"{path}: only binary little-endian PLY is read")
-    count, props, element = None, [], None
-    for line in lines:
-        parts = line.split()
-        if parts[:1] == ["element"]:
-            element = parts[1]
-            if element == "chunk":
-                raise ValueError(f"{path}: a compressed PLY (chunk element) is a viewer format and "
-                                 "cannot be read back; export 'ply'")
-            if element == "vertex":
-                count = int(parts[2])
-            elif count is not None:
-                raise ValueError(f"{path}: a '{element}' element follows the vertices: a compressed "
-                                 "PLY is a viewer format and cannot be read back; export 'ply'")
-        elif parts[:1] == ["property"] and element == "vertex":
-            if parts[1] != "float":
-                raise ValueError(f"{path}: vertex property {parts[-1]} is {parts[1]}, expected float")
-            props.append((parts[1], parts[2]))
-    if count is None:
+def _vertex_table(path: Path):
+    """The vertex element of a PLY file (any of plyfile's encodings: binary either endianness,
+    ASCII), refusing the lossy viewer formats with a message that says so."""
+    from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
+    try:
+        data = PlyData.read(str(path))
+    except PlyHeaderParseError as err:
+        raise ValueError(f"{path}: not a PLY file ({err})") from None
+    except (PlyElementParseError, EOFError, struct.error) as err:
+        raise ValueError(f"{path}: truncated or malformed vertex data ({err})") from None
+    names = [e.name for e in data.elements]
+    if "chunk" in names:
+        raise ValueError(f"{path}: a compressed PLY (chunk element) is a viewer format and cannot be "
+                         "read back; export 'ply'")
+    if "vertex" not in names:
         raise ValueError(f"{path}: no vertex element")
-    return count, props, end + len(b"end_header\n")
+    if names.index("vertex") != len(names) - 1:
+        following = names[names.index("vertex") + 1]
+        raise ValueError(f"{path}: a '{following}' element follows the vertices: a compressed PLY is a "
+                         "viewer format and cannot be read back; export 'ply'")
+    return data["vertex"]
 
 
 def load(path: str | Path) -> Gaussians:
-    """Read an INRIA 3DGS PLY into float32 ``Gaussians`` (CPU)."""
+    """Read an INRIA 3DGS PLY into float32 ``Gaussians`` (CPU). Extra vertex properties (normals,
+    uchar colours, ...) are ignored; the 3DGS ones may be float or double."""
     path = Path(path)
-    data = path.read_bytes()
-    count, props, start = _header(data, path)
-    names = [n for _, n in props]
+    if not path.exists():
+        raise ValueError(f"{path}: no such file")
+    vertex = _vertex_table(path)
+    names = [prop.name for prop in vertex.properties]
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
                 "rot_0", "rot_1", "rot_2", "rot_3"]
     missing = [n for n in required if n not in names]
@@ -81,14 +79,14 @@ def load(path: str | Path) -> Gaussians:
     k = len(rest) // 3
     if len(rest) % 3 or num_sh_bases(int(round((k + 1) ** 0.5)) - 1) != k + 1:
         raise ValueError(f"{path}: {len(rest)} f_rest properties is not 3 x (a square - 1)")
-    size = 4 * len(names) * count
-    if len(data) - start < size:
-        raise ValueError(f"{path}: truncated ({len(data) - start} bytes of vertex data, {size} needed)")
-    table = np.frombuffer(data, dtype="<f4", count=len(names) * count, offset=start).reshape(count, len(names))
-    col = {n: i for i, n in enumerate(names)}
+    for name in required + rest:
+        kind = vertex[name].dtype.kind
+        if kind != "f":
+            raise ValueError(f"{path}: vertex property {name} is {vertex[name].dtype}, expected float")
+    count = len(vertex.data)
 
     def cols(keys):
-        return torch.from_numpy(table[:, [col[c] for c in keys]].astype(np.float32))
+        return torch.from_numpy(np.stack([np.asarray(vertex[c], dtype=np.float32) for c in keys], axis=1))
     shn = cols(rest).reshape(count, 3, k).transpose(1, 2).contiguous() if k else torch.zeros(count, 0, 3)
     g = Gaussians(means=cols(["x", "y", "z"]), log_scales=cols(["scale_0", "scale_1", "scale_2"]),
                   quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]), logit_opacities=cols(["opacity"])[:, 0],
