@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-.PHONY: env demo test test-fast e2e mutate bench
+.PHONY: env demo test test-fast e2e latex mutate bench
 env: $(STAMP)
 
 # The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
@@ -35,6 +35,13 @@ e2e: $(STAMP)
 	command -v chromium >/dev/null || { $$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get update -qq && \
 		$$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get install -y -qq chromium; }
 	$(BIN)/python -m pytest -q -m e2e
+
+# The LaTeX tables' compile test (tests/test_report.py) needs pdflatex: Debian's
+# texlive-latex-recommended (about a minute); `make test` skips it with the reason otherwise.
+latex: $(STAMP)
+	command -v pdflatex >/dev/null || { $$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get update -qq && \
+		$$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get install -y -qq --no-install-recommends texlive-latex-recommended; }
+	$(BIN)/python -m pytest -q tests/test_report.py -k pdflatex
 
 # Mutation testing of the core's formulas ([tool.mutmut] in pyproject.toml: which modules, which
 # oracle tests); resumable. The mutated modules are the torch path, so the compiled backend is off

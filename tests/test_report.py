@@ -61,8 +61,8 @@ def test_markdown_marks_and_missing_cells(records):
     row = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
            for line in md.splitlines() if line.startswith("| ") and not line.startswith("| method")}
     assert row["gopre"][0] == "**26.50 ± 0.71**"
-    assert row["fisherrf"][0] == "_25.00 ± 0.00_"
-    assert row["coverage"][0] == "23.00 ± 0.00 ³"
+    assert row["fisherrf"][0] == "<ins>25.00 ± 0.00</ins>"  # second: underlined, as \second
+    assert row["coverage"][0] == "_23.00 ± 0.00_"
     assert row["random"][0] == "21.00 ± 0.00"
     assert row["fisherrf"][3] == "n/a" and row["coverage"][5] == "n/a"  # mipnerf360 not run
     assert row["gopre"][2] == "n/a"  # blender LPIPS unavailable, not zero
@@ -76,7 +76,7 @@ def test_latex_is_balanced_booktabs_with_macros(records):
         assert tex.count(rf"\begin{{{env}}}") == tex.count(rf"\end{{{env}}}") == 1
     assert tex.count("{") == tex.count("}")
     assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
-    assert r"\best{26.50 $\pm$ 0.71}" in tex and r"\second{" in tex and r"\third{" in tex
+    assert r"\best{$26.50 \pm 0.71$}" in tex and r"\second{" in tex and r"\third{" in tex
     assert r"Global\_results \& more" in tex
     body = [line for line in tex.splitlines() if line.endswith(r"\\") and not line.startswith(" &")]
     columns = {line.count(" & ") for line in body if "multicolumn" not in line}
@@ -120,7 +120,7 @@ def test_sparsification_figure_and_ause_table(tmp_path):
     pd.DataFrame(rows).to_parquet(path)
     summary = make_report(path, tmp_path / "out")
     assert set(summary["figures"]["sparsification.png"]) == {"gopre", "random", "oracle"}
-    assert "**0.000**" in summary["tables"] and "_0.100_" in summary["tables"]
+    assert "**0.000**" in summary["tables"] and "<ins>0.100</ins>" in summary["tables"]
 
 
 def test_missing_records_is_a_clear_error(tmp_path):
@@ -194,3 +194,52 @@ def test_a_method_has_one_colour_in_every_panel(tmp_path):
     finally:
         plt.Axes.plot = real_plot
     assert all(len(c) == 1 for c in seen.values()) and seen["gopre"] != seen["random"]
+
+
+def test_cells_that_print_the_same_value_share_a_mark_in_both_formats():
+    rows = [{"method": m, "dataset": "d", "seed": 0, "psnr": v} for m, v in
+            [("a", 23.301), ("b", 23.298), ("c", 22.0)]]  # a and b both print 23.30
+    table = build_table(pd.DataFrame(rows), "T", "method", "dataset", ["psnr"])
+    md, tex = to_markdown(table), to_latex(table)
+    assert md.count("**23.30**") == 2 and "<ins>22.00</ins>" in md
+    assert tex.count(r"\best{$23.30$}") == 2 and r"\second{$22.00$}" in tex
+
+
+def test_latex_uses_math_minus_captions_the_content_and_sets_notes_apart():
+    rows = [{"method": m, "dataset": "d", "seed": 0, "psnr": v, "lpips": float("nan"),
+             "lpips_status": "LPIPS (vgg) unavailable: ModuleNotFoundError: No module named 'lpips'"}
+            for m, v in [("a", -1.5), ("b", 2.0)]]
+    tex = to_latex(build_table(pd.DataFrame(rows), "sweep_x", "method", "dataset", ["psnr", "lpips"]))
+    assert r"$-1.50$" in tex and "& -1.50" not in tex
+    assert r"\caption{sweep\_x: PSNR, LPIPS per method, mean $\pm$ std over seeds" in tex
+    assert r"\label{tab:sweep-x}" in tex
+    assert "ModuleNotFoundError" not in tex and "lpips package or its pretrained weights" in tex
+    after = tex.split(r"\usebox{\gopretablebox}\fi")[1]  # the notes follow the (fitted) table
+    assert after.lstrip().startswith(r"\par\smallskip") and r"\parbox{\linewidth}" in after
+
+
+
+def test_the_latex_tables_compile_with_pdflatex_without_overfull_lines(records, tmp_path):
+    import shutil
+    import subprocess
+    if shutil.which("pdflatex") is None:
+        pytest.skip("pdflatex is not installed (Debian: apt-get install texlive-latex-recommended)")
+    no_lpips = records.assign(lpips=float("nan"), lpips_status="LPIPS (vgg) unavailable: "
+                              "ModuleNotFoundError: No module named 'lpips'")  # a note under the table
+    make_report(records_path(no_lpips, tmp_path), tmp_path / "out")
+    tex = (tmp_path / "out" / "table.tex").read_text()
+    assert r"\begin{tabular}" in tex and "Delta" in tex  # the main and the paired table
+    doc = tmp_path / "doc.tex"
+    doc.write_text("\\documentclass{article}\n\\usepackage{booktabs}\n\\usepackage{graphicx}\n\\begin{document}\n"
+                   f"{tex}\n\\end{{document}}\n")
+    run = subprocess.run(["pdflatex", "-interaction=nonstopmode", "-halt-on-error", doc.name],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    log = (tmp_path / "doc.log").read_text(errors="replace")
+    assert run.returncode == 0, log[-2000:]
+    assert "Overfull \\hbox" not in log, [ln for ln in log.splitlines() if "Overfull" in ln]
+    assert (tmp_path / "doc.pdf").stat().st_size > 0
+
+
+def records_path(frame, tmp_path):
+    frame.to_parquet(tmp_path / "records.parquet")
+    return tmp_path / "records.parquet"

@@ -59,11 +59,13 @@ def _aggregate(final: pd.DataFrame, row_key: str, group_key: str | None, metric:
 
 
 def _rank(cells: dict, rows: list[str], column: tuple[str, str]) -> None:
+    """Ranks on the values as printed: two cells that print the same number share a mark."""
     present = [(r, cells[(r, column)]) for r in rows if (r, column) in cells and cells[(r, column)].mean is not None]
     sign = 1 if column[1] in LOWER_IS_BETTER else -1
-    distinct = sorted({round(sign * c.mean, 10) for _, c in present})
+    digits = DIGITS.get(column[1], 3)
+    distinct = sorted({round(sign * c.mean, digits) for _, c in present})
     for _, cell in present:
-        place = distinct.index(round(sign * cell.mean, 10)) + 1
+        place = distinct.index(round(sign * cell.mean, digits)) + 1
         cell.rank = place if place <= 3 and len(present) > 1 else None
 
 
@@ -82,8 +84,16 @@ def build_table(final: pd.DataFrame, title: str, row_key: str, group_key: str | 
     notes = []
     if "lpips" in metrics and not any(c[1] == "lpips" for (_, c) in cells):
         status = final["lpips_status"].dropna().unique() if "lpips_status" in final else []
-        notes.append(str(status[0]) if len(status) else "LPIPS unavailable")
+        notes.append(lpips_note(str(status[0]) if len(status) else ""))
     return Table(title, row_key, rows, columns, cells, notes)
+
+
+def lpips_note(status: str) -> str:
+    """A sentence for a table note (never an exception's text): why the LPIPS cells are n/a."""
+    if "disabled" in status:
+        return "LPIPS disabled in the config (n/a)."
+    return ("LPIPS unavailable: the optional lpips package or its pretrained weights are not "
+            "installed, so its cells are n/a (never a number).")
 
 
 def format_cell(cell: Cell | None, metric: str) -> str:
@@ -101,7 +111,7 @@ def to_markdown(table: Table) -> str:
     header = [table.row_label] + [f"{g} {METRIC_LABELS.get(m, m)}".strip() for g, m in table.columns]
     lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |",
              "|" + "---|" * len(header)]
-    marks = {1: ("**", "**"), 2: ("_", "_"), 3: ("", " ³")}
+    marks = {1: ("**", "**"), 2: ("<ins>", "</ins>"), 3: ("_", "_")}  # as the LaTeX macros
     for row in table.rows:
         out = [str(row)]
         for column in table.columns:
@@ -113,7 +123,7 @@ def to_markdown(table: Table) -> str:
             out.append(text)
         lines.append("| " + " | ".join(out) + " |")
     lines.append("")
-    lines.append("Best in **bold**, second in _italics_, third marked ³." + (
+    lines.append("Best in **bold**, second <ins>underlined</ins>, third in _italics_." + (
         f" Groups: {', '.join(groups)}." if groups != [""] else ""))
     lines += [f"Note: {n}" for n in table.notes]
     return "\n".join(lines) + "\n"
@@ -124,16 +134,51 @@ def _tex_escape(text: str) -> str:
             .replace("%", r"\%").replace("#", r"\#"))
 
 
+# A table wider than the text is scaled down to the text width (never an overfull line); one that
+# fits is set at its natural size. Plain LaTeX + graphicx, so the file pastes into any paper.
+FIT_OPEN = [r"\ifdefined\gopretablebox\else\newsavebox{\gopretablebox}\fi",
+            r"\sbox{\gopretablebox}{%"]
+FIT_CLOSE = [r"}%", r"\ifdim\wd\gopretablebox>\linewidth\resizebox{\linewidth}{!}{\usebox{\gopretablebox}}"
+             r"\else\usebox{\gopretablebox}\fi"]
+
+
+def tex_number(text: str) -> str:
+    """A printed cell in math mode: a true minus sign and a math plus-minus ("-0.42 ± 0.10" ->
+    "$-0.42 \\pm 0.10$"), the same in every table."""
+    return "$" + text.replace(" ± ", r" \pm ") + "$"
+
+
+def tex_notes(notes: list[str]) -> list[str]:
+    """Notes under the tabular, each its own paragraph set to the text width (never on the
+    tabular's line)."""
+    if not notes:
+        return []
+    body = r" \\ ".join(f"Note: {_tex_escape(n)}" for n in notes)
+    return [r"\par\smallskip", rf"\parbox{{\linewidth}}{{\footnotesize {body}}}"]
+
+
+def latex_caption(table: Table) -> str:
+    """What the table shows, not only the sweep's name."""
+    metrics = ", ".join(dict.fromkeys(METRIC_LABELS.get(m, m) for _, m in table.columns))
+    return (f"{_tex_escape(table.title)}: {_tex_escape(metrics)} per {_tex_escape(table.row_label.lower())}, "
+            "mean $\\pm$ std over seeds; best in bold, second underlined, third in italics")
+
+
+def _tex_label(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in str(text).lower()).strip("-")[:60] or "table"
+
+
 def to_latex(table: Table) -> str:
     groups = list(dict.fromkeys(g for g, _ in table.columns))
     per_group = len(table.columns) // max(len(groups), 1)
     arrows = {m: (r"$\downarrow$" if m in LOWER_IS_BETTER else r"$\uparrow$") for _, m in table.columns}
-    lines = [r"% requires \usepackage{booktabs} and \usepackage{xcolor}",
+    lines = [r"% requires \usepackage{booktabs} and \usepackage{graphicx}",
              r"\providecommand{\best}[1]{\textbf{#1}}",
              r"\providecommand{\second}[1]{\underline{#1}}",
              r"\providecommand{\third}[1]{\textit{#1}}",
-             r"\begin{table}[t]", r"\centering", rf"\caption{{{_tex_escape(table.title)}}}",
-             r"\begin{tabular}{l" + "c" * len(table.columns) + "}", r"\toprule"]
+             r"\begin{table}[t]", r"\centering", rf"\caption{{{latex_caption(table)}}}",
+             rf"\label{{tab:{_tex_label(table.title)}}}",
+             *FIT_OPEN, r"\begin{tabular}{l" + "c" * len(table.columns) + "}", r"\toprule"]
     if groups != [""]:
         lines.append(" & " + " & ".join(rf"\multicolumn{{{per_group}}}{{c}}{{{_tex_escape(g)}}}"
                                          for g in groups) + r" \\")
@@ -147,13 +192,14 @@ def to_latex(table: Table) -> str:
         out = [_tex_escape(row)]
         for column in table.columns:
             cell = table.cells.get((row, column))
-            text = format_cell(cell, column[1]).replace("±", r"$\pm$")
+            text = format_cell(cell, column[1])
+            text = MISSING if text == MISSING else tex_number(text)
             if cell is not None and cell.rank in macro and text != MISSING:
                 text = f"{macro[cell.rank]}{{{text}}}"
             out.append(text)
         lines.append(" & ".join(out) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}"]
-    lines += [rf"{{\footnotesize Note: {_tex_escape(n)}\par}}" for n in table.notes]
+    lines += [r"\bottomrule", r"\end{tabular}", *FIT_CLOSE]
+    lines += tex_notes(table.notes)
     lines.append(r"\end{table}")
     return "\n".join(lines) + "\n"
 
@@ -208,8 +254,8 @@ def paired_to_markdown(table: PairedTable) -> str:
 
 def paired_to_latex(table: PairedTable) -> str:
     cols = "lc" + "cc" * len(table.metrics)
-    lines = [r"% requires \usepackage{booktabs}", r"\begin{table}[t]", r"\centering",
-             rf"\caption{{{_tex_escape(table.title)}}}", rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
+    lines = [r"% requires \usepackage{booktabs} and \usepackage{graphicx}", r"\begin{table}[t]", r"\centering",
+             rf"\caption{{{_tex_escape(table.title)}}}", *FIT_OPEN, rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
              " & & " + " & ".join(rf"\multicolumn{{2}}{{c}}{{{_tex_escape(PAIRED_LABELS.get(m, m))}}}"
                                   for m in table.metrics) + r" \\",
              "".join(rf"\cmidrule(lr){{{3 + 2 * i}-{4 + 2 * i}}}" for i in range(len(table.metrics))),
@@ -220,10 +266,10 @@ def paired_to_latex(table: PairedTable) -> str:
         out = [_tex_escape(method), str(n)]
         for m in table.metrics:
             cells = _paired_cells(by_metric.get(m), m)
-            out += [cells[0].replace("[", "$[").replace("]", "]$") if cells[0] != MISSING else MISSING,
-                    cells[1]]
+            out += [tex_number(cells[0]) if cells[0] != MISSING else MISSING, cells[1]]
         lines.append(" & ".join(out) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}",
-              rf"{{\footnotesize $\Delta$ = method $-$ {_tex_escape(table.reference)} over paired "
-              r"(scene, seed) runs; percentile bootstrap interval.\par}", r"\end{table}"]
+    lines += [r"\bottomrule", r"\end{tabular}", *FIT_CLOSE, r"\par\smallskip",
+              rf"\parbox{{\linewidth}}{{\footnotesize $\Delta$ = method $-$ {_tex_escape(table.reference)} "
+              r"over paired (scene, seed) runs; 95\% percentile bootstrap interval"
+              + "".join(rf" \\ Note: {_tex_escape(n)}" for n in table.notes) + "}", r"\end{table}"]
     return "\n".join(lines) + "\n"
