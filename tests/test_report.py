@@ -103,7 +103,9 @@ def test_report_writes_tables_figures_and_the_runs_it_used(records, tmp_path):
     assert set(series) == {"gopre", "random"}
     assert series["gopre"] == [[2, 3, 4], [13.0, 16.0, 19.0]]
     assert (tmp_path / "out" / "figures" / "psnr_vs_views.png").stat().st_size > 1000
+    assert (tmp_path / "out" / "figures" / "psnr_vs_views.pdf").read_bytes().startswith(b"%PDF")  # vector
     report = (tmp_path / "out" / "report.md").read_text()
+    assert "averages the curve's test views" in report
     assert "gopre-blender-lego-0-" in report and "FAILED" in report  # traceable to config hashes
     assert re.search(r"seeds \[0, 1\]", report)
 

@@ -15,6 +15,14 @@ import pandas as pd  # noqa: E402
 from PIL import Image  # noqa: E402
 
 
+def save_figure(fig, path: Path) -> None:
+    """The figure as ``path`` (PNG, for the Markdown report) and beside it as vector PDF (for a
+    paper), then closed."""
+    fig.savefig(path, dpi=120)
+    fig.savefig(Path(path).with_suffix(".pdf"))
+    plt.close(fig)
+
+
 def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple[list, list]]]:
     """One panel per scene and setting (sweep-axis values, e.g. the protocol), one line per method
     (mean over seeds) of PSNR against #views; panels in rows of at most three."""
@@ -40,15 +48,14 @@ def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple
             ax.plot(x, y, marker="o", ms=3, label=method, color=colour[method])
         ax.set_title(panel, fontsize=9)
         ax.set_xlabel("number of views")
-        ax.set_ylabel("test PSNR (dB)")
+        ax.set_ylabel("PSNR on the curve's test views (dB)", fontsize=8)
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
     handles = [plt.Line2D([], [], color=colour[m], marker="o", ms=3, label=m) for m in methods]
     axes[0][0].legend(handles=handles, fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     return series
 
 
@@ -69,8 +76,7 @@ def sparsification(curves: pd.DataFrame, ause: pd.DataFrame, path: Path) -> dict
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     return series
 
 
@@ -92,8 +98,7 @@ def image_grid(images: dict[str, list[Path]], path: Path, title: str) -> dict[st
         axes[i][0].set_title(label, loc="left", fontsize=9)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     return {label: len(imgs) for label, imgs in rows}
 
 
@@ -128,6 +133,5 @@ def qualitative_grid(renders: dict[str, list[Path]], path: Path) -> dict[str, li
         axes[i][0].text(-0.05, 0.5, Path(view).stem, transform=axes[i][0].transAxes, rotation=90,
                         va="center", ha="right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
     return {"columns": cols, "rows": [Path(v).stem for v in views]}

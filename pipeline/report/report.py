@@ -199,6 +199,10 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     failed = runs[runs["status"] != "FINISHED"]
     seeds = sorted(set(runs["seed"]))
     lines = [f"# Report: {title}", "", markdown, "## Figures", ""]
+    if "psnr_vs_views.png" in made:
+        lines += ["PSNR vs views averages the curve's test views (a fixed subset, "
+                  "`splat.curve_test_views`); the tables' final PSNR uses every test view, so a curve's "
+                  "last point differs from its table cell. Every figure is also in `figures/` as PDF.", ""]
     lines += [f"![{name}](figures/{name})" for name in made]
     lines += ["", "## Runs used", "",
               f"{len(runs)} jobs from sweep `{title}`, seeds {seeds}; {len(failed)} failed (excluded). "
