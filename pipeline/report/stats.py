@@ -3,8 +3,8 @@ against a reference method with bootstrap intervals and wins/losses.
 
 A pair is one (dataset, scene, seed, setting) on which both the method and the reference finished:
 the same scene, the same initial views and the same seed, so the difference removes what the
-seed shares between methods. The interval is a percentile bootstrap over pairs (seeded, so a
-report is reproducible).
+seed shares between methods. The interval is scipy's BCa bootstrap over pairs (seeded, so a
+report is reproducible), with the Wilcoxon signed-rank p-value beside it.
 """
 
 from __future__ import annotations
@@ -41,15 +41,37 @@ def with_curve_area(final: pd.DataFrame, rounds: pd.DataFrame) -> pd.DataFrame:
 
 def bootstrap_interval(values: np.ndarray, level: float = 0.95, samples: int = BOOTSTRAP_SAMPLES,
                        seed: int = 0) -> tuple[float, float]:
-    """Percentile bootstrap interval of the mean of ``values`` [n] (n >= 1; a single value gives a
-    zero-width interval, which the tables flag by n)."""
+    """Bias-corrected and accelerated (BCa) bootstrap interval of the mean of ``values`` [n]
+    (``scipy.stats.bootstrap``, seeded so a report is reproducible). Values that are all equal
+    (or n = 1) give a zero-width interval, which the tables flag by n; if BCa is undefined for a
+    sample (its jackknife is degenerate) the percentile interval is used."""
+    from scipy.stats import bootstrap
     values = np.asarray(values, dtype=float)
     if values.size == 0:
         raise ValueError("bootstrap_interval: no values")
-    rng = np.random.default_rng(seed)
-    means = values[rng.integers(0, values.size, size=(samples, values.size))].mean(axis=1)
-    tail = (1 - level) / 2
-    return float(np.quantile(means, tail)), float(np.quantile(means, 1 - tail))
+    if values.size == 1 or np.ptp(values) == 0:
+        return float(values.mean()), float(values.mean())
+    for method in ("BCa", "percentile"):
+        with np.errstate(all="ignore"):
+            import warnings
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ci = bootstrap((values,), np.mean, confidence_level=level, n_resamples=samples,
+                               method=method, random_state=np.random.default_rng(seed)).confidence_interval
+        if np.isfinite(ci.low) and np.isfinite(ci.high):
+            return float(ci.low), float(ci.high)
+    return float(values.mean()), float(values.mean())
+
+
+def wilcoxon_p(differences: np.ndarray) -> float | None:
+    """Two-sided Wilcoxon signed-rank p-value of paired differences (zero differences dropped);
+    None when no difference is non-zero."""
+    from scipy.stats import wilcoxon
+    d = np.asarray(differences, dtype=float)
+    d = d[np.abs(d) > TIE_DB]
+    if d.size == 0:
+        return None
+    return float(wilcoxon(d).pvalue)
 
 
 @dataclass
@@ -64,6 +86,7 @@ class PairedComparison:
     wins: int                   # pairs where the method is better than the reference
     losses: int
     ties: int
+    wilcoxon_p: float | None = None  # two-sided signed-rank test of the differences
 
 
 def paired_differences(final: pd.DataFrame, reference: str, metric: str,
@@ -100,13 +123,13 @@ def paired_comparisons(final: pd.DataFrame, reference: str, metric: str = "psnr"
         low, high = bootstrap_interval(d)
         out.append(PairedComparison(method, reference, metric, int(d.size), float(d.mean()), low, high,
                                     int((d > TIE_DB).sum()), int((d < -TIE_DB).sum()),
-                                    int((np.abs(d) <= TIE_DB).sum())))
+                                    int((np.abs(d) <= TIE_DB).sum()), wilcoxon_p(d)))
     return out
 
 
 def verdict(c: PairedComparison) -> str:
     """Plain words: whether the interval excludes zero, and on which side; no verdict from fewer
-    than ``MIN_PAIRS`` pairs (a percentile bootstrap over 2-4 values is far too narrow)."""
+    than ``MIN_PAIRS`` pairs (a bootstrap over 2-4 values is far too narrow)."""
     if c.n < MIN_PAIRS:
         return f"{c.n} pair(s): too few for a verdict"
     if c.low > 0:

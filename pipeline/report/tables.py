@@ -221,12 +221,17 @@ def _signed(x: float, d: int) -> str:
     return f"{x:+.{d}f}"
 
 
+def _p_value(p: float | None) -> str:
+    return MISSING if p is None else (f"{p:.3f}" if p >= 0.001 else "<0.001")
+
+
 def _paired_cells(c, metric: str) -> list[str]:
+    """[difference with its interval, W/L/T, Wilcoxon p, verdict]."""
     if c is None:
-        return [MISSING, MISSING, MISSING]
+        return [MISSING, MISSING, MISSING, MISSING]
     d = DIGITS.get(metric, 2)
     return [f"{_signed(c.mean_difference, d)} [{_signed(c.low, d)}, {_signed(c.high, d)}]",
-            f"{c.wins}/{c.losses}/{c.ties}", verdict(c)]
+            f"{c.wins}/{c.losses}/{c.ties}", _p_value(c.wilcoxon_p), verdict(c)]
 
 
 PAIRED_LABELS = {"psnr": "final PSNR", "psnr_auc": "PSNR-vs-views area"}
@@ -236,7 +241,7 @@ def paired_to_markdown(table: PairedTable) -> str:
     header = ["method", "pairs"]
     for m in table.metrics:
         label = PAIRED_LABELS.get(m, m)
-        header += [f"Δ {label} (dB) [95% CI]", f"{label} W/L/T", f"{label} verdict"]
+        header += [f"Δ {label} (dB) [95% CI]", f"{label} W/L/T", f"{label} Wilcoxon p", f"{label} verdict"]
     lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for method, by_metric in table.rows.items():
         n = max((c.n for c in by_metric.values() if c is not None), default=0)
@@ -245,7 +250,8 @@ def paired_to_markdown(table: PairedTable) -> str:
             out += _paired_cells(by_metric.get(m), m)
         lines.append("| " + " | ".join(out) + " |")
     lines += ["", f"Δ = method − {table.reference} over pairs (same dataset, scene, seed and setting; "
-              "both finished); 95% percentile bootstrap interval of the mean over pairs; W/L/T = "
+              "both finished); 95% BCa bootstrap interval of the mean over pairs (scipy); Wilcoxon p = the "
+              "two-sided signed-rank test of the differences; W/L/T = "
               f"pairs where the method is better / worse / equal. The verdict is 'better' only when "
               "the interval excludes zero, and none is drawn from fewer than 5 pairs."]
     lines += [f"Note: {n}" for n in table.notes]
@@ -253,23 +259,24 @@ def paired_to_markdown(table: PairedTable) -> str:
 
 
 def paired_to_latex(table: PairedTable) -> str:
-    cols = "lc" + "cc" * len(table.metrics)
+    cols = "lc" + "ccc" * len(table.metrics)
     lines = [r"% requires \usepackage{booktabs} and \usepackage{graphicx}", r"\begin{table}[t]", r"\centering",
              rf"\caption{{{_tex_escape(table.title)}}}", *FIT_OPEN, rf"\begin{{tabular}}{{{cols}}}", r"\toprule",
-             " & & " + " & ".join(rf"\multicolumn{{2}}{{c}}{{{_tex_escape(PAIRED_LABELS.get(m, m))}}}"
+             " & & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{_tex_escape(PAIRED_LABELS.get(m, m))}}}"
                                   for m in table.metrics) + r" \\",
-             "".join(rf"\cmidrule(lr){{{3 + 2 * i}-{4 + 2 * i}}}" for i in range(len(table.metrics))),
-             "Method & Pairs & " + " & ".join(r"$\Delta$ [95\% CI] & W/L/T" for _ in table.metrics) + r" \\",
+             "".join(rf"\cmidrule(lr){{{3 + 3 * i}-{5 + 3 * i}}}" for i in range(len(table.metrics))),
+             "Method & Pairs & " + " & ".join(r"$\Delta$ [95\% CI] & W/L/T & $p$" for _ in table.metrics) + r" \\",
              r"\midrule"]
     for method, by_metric in table.rows.items():
         n = max((c.n for c in by_metric.values() if c is not None), default=0)
         out = [_tex_escape(method), str(n)]
         for m in table.metrics:
             cells = _paired_cells(by_metric.get(m), m)
-            out += [tex_number(cells[0]) if cells[0] != MISSING else MISSING, cells[1]]
+            out += [tex_number(cells[0]) if cells[0] != MISSING else MISSING, cells[1],
+                    cells[2].replace("<", "$<$")]
         lines.append(" & ".join(out) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}", *FIT_CLOSE, r"\par\smallskip",
               rf"\parbox{{\linewidth}}{{\footnotesize $\Delta$ = method $-$ {_tex_escape(table.reference)} "
-              r"over paired (scene, seed) runs; 95\% percentile bootstrap interval"
+              r"over paired (scene, seed) runs; 95\% BCa bootstrap interval; $p$: Wilcoxon signed-rank"
               + "".join(rf" \\ Note: {_tex_escape(n)}" for n in table.notes) + "}", r"\end{table}"]
     return "\n".join(lines) + "\n"
