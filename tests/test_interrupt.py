@@ -157,3 +157,23 @@ def test_a_sigkilled_driver_loses_no_finished_job_and_redoes_none(tmp_path):
     final = RecordsFile(out).frame.query("kind == 'final'")
     assert len(final) == 4 and set(final["status"]) == {"FINISHED"}
     assert "RUNNING" not in run_statuses(out).values()
+
+
+def test_sigint_at_random_moments_of_a_ray_sweep_always_stops_cleanly(tmp_path):
+    """The driver spends most of its time inside ``ray.wait``; a handler that raised inside Ray's
+    Cython code turned a Ctrl-C into a SystemError traceback and left MLflow runs RUNNING. Three
+    signals at seeded random moments after the launch line, wherever the driver happens to be."""
+    import random
+    delays = random.Random(0).sample([0.3, 1.0, 2.0, 3.5, 5.0, 7.0], 3)
+    for trial, delay in enumerate(delays):
+        out = tmp_path / f"trial{trial}"
+        proc, lines = start(out)
+        wait_for(lines, "to run; output in", timeout=300)
+        time.sleep(delay)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=120)
+        text = drain(lines)
+        assert rc == 130, f"delay {delay} s: exit {rc}\n{text}"
+        assert "Traceback" not in text and "SystemError" not in text, f"delay {delay} s:\n{text}"
+        assert "stopped by SIGINT" in text, text
+        assert "RUNNING" not in run_statuses(out).values(), f"delay {delay} s"

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow  # one real command per case (~10 s each idle)
      "dataset.generated scene 'generated': /nonexistent/generated: no such folder"),
     (["dataset=[shared]", "data_root=/data"], "dataset.generated: missing keys ['format', 'root', 'scenes']"),
     (["protocol.budget=0"], "protocol.budget must be an integer >= 2, got 0"),
-    (["seeds=zero"], "seeds: expected a non-empty list of non-negative integers, e.g. seeds=[0,1,2], got 'zero'"),
+    (["seeds=zero"], "seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got 'zero'"),
     (["job.threads=0"], "job.threads: expected an integer >= 1, got 0"),
     (["plan=true", "dataset.generated.root=/nonexistent", "dataset.generated.generate=null"],
      "dataset.generated scene 'generated': /nonexistent/generated: no such folder"),

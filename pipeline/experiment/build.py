@@ -97,9 +97,10 @@ def seeds_of(cfg: DictConfig) -> list[int]:
     seeds = _container(cfg, "seeds") if OmegaConf.is_config(value) else value  # a list node, or a scalar
     seeds = [seeds] if isinstance(seeds, int) and not isinstance(seeds, bool) else seeds
     if not isinstance(seeds, list) or not seeds or any(
-            isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds):
-        raise ConfigError(f"seeds: expected a non-empty list of non-negative integers, e.g. "
-                          f"seeds=[0,1,2], got {seeds!r}")
+            isinstance(s, bool) or not isinstance(s, int) for s in seeds):
+        raise ConfigError(f"seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got {seeds!r}")
+    if any(s < 0 for s in seeds):
+        raise ConfigError(f"seeds: a seed must be >= 0, got {seeds!r}")
     return seeds
 
 

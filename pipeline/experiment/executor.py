@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline.data.scene import Scene
-from pipeline.experiment.interrupt import (SweepInterrupted, current_handlers, install_stop_handlers,
-                                           restore_handlers)
+from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_handlers,
+                                           install_stop_handlers, restore_handlers)
 from pipeline.experiment.job import run_with_retries
 
 OnDone = Callable[[dict, dict], None]
@@ -67,8 +67,11 @@ class RoundChannel:
         self.on_round = on_round
 
     def drain(self) -> None:
-        while not self.queue.empty():
-            config_hash, message = self.queue.get_nowait()
+        while True:
+            with critical():  # the queue's calls are Ray calls: a stop signal waits for them
+                if self.queue.empty():
+                    return
+                config_hash, message = self.queue.get_nowait()
             self.on_round(self.jobs[config_hash], message)
 
     def close(self) -> None:
@@ -100,36 +103,44 @@ class RayExecutor:
     def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
         previous = current_handlers()  # restored when the sweep ends
-        ray, started_here = self._start()
-        install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
-        channel, pending = None, {}
+        ray, started_here, channel, pending = None, False, None, {}
         try:
-            channel = RoundChannel(jobs, on_round) if on_round is not None else None
-            refs = {key: ray.put(scene) for key, scene in scenes.items()}  # once per scene
+            # Every Ray call runs with stop signals deferred (``critical``): a handler that raised
+            # inside Ray's Cython code would surface as a SystemError instead of a clean stop, and
+            # one inside ray.init left a half-started Ray that crashed the exit; the request is
+            # acted on as soon as the call returns (at most one poll later).
+            with critical():
+                ray, started_here = self._start()
+                install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
+                channel = RoundChannel(jobs, on_round) if on_round is not None else None
+                refs = {key: ray.put(scene) for key, scene in scenes.items()}  # once per scene
             cpus = ray.cluster_resources().get("CPU", 1)
             self.slots = max(1, int(cpus // max(1, min(j["execution"]["threads"] for j in jobs)))) if jobs else 1
             task = ray.remote(_remote_run)
-            for job in jobs:
-                options = {"num_cpus": job["execution"]["threads"], "num_gpus": self.gpus_per_job,
-                           "max_retries": self.max_retries, "name": f"{job['method']}:{job['scene']}"}
-                queue = channel.queue if channel is not None else None
-                pending[task.options(**options).remote(job, refs.get(scene_key(job)), queue)] = job
+            with critical():
+                for job in jobs:
+                    options = {"num_cpus": job["execution"]["threads"], "num_gpus": self.gpus_per_job,
+                               "max_retries": self.max_retries, "name": f"{job['method']}:{job['scene']}"}
+                    queue = channel.queue if channel is not None else None
+                    pending[task.options(**options).remote(job, refs.get(scene_key(job)), queue)] = job
             while pending:
-                done, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS)
+                with critical():
+                    done, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS)
                 if channel is not None:  # a job's rounds are all heard before its end
                     channel.drain()
                 if not done:
                     continue
                 job = pending.pop(done[0])
                 try:
-                    outcome = ray.get(done[0])
+                    with critical():
+                        outcome = ray.get(done[0])
                 except Exception:  # the worker died more often than max_retries allows
                     tb = traceback.format_exc()
                     outcome = {"status": "FAILED", "attempts": self.max_retries + 1, "errors": [tb],
                                "traceback": tb, "result": None, "artifacts": {"traceback.txt": tb.encode()}}
                 on_done(job, outcome)
         except SweepInterrupted:
-            self.running = self._cancel(ray, pending)
+            self.running = self._cancel(ray, pending) if ray is not None else []
             raise
         finally:
             if channel is not None:

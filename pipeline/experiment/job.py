@@ -60,7 +60,8 @@ def round_message(rec: RoundRecord, rounds: int) -> dict:
 def round_images(ep, rec, count: int) -> dict[str, bytes]:
     """PNGs of the model that made this round's pick: the render and the per-pixel predictive
     variance (sum over channels, S = 1 / (H_train + lambda) of the taken views) of ``count``
-    fixed test views, and the picked view's ground truth."""
+    fixed test views, and the picked view's ground truth as the series ``picked`` (``picked_2`` ...
+    for the further picks of a batch round)."""
     g, bg = ep.trainer.rendered_gaussians, ep.background
     views = ep.curve_ids[:count]
     cams = ep.test.cameras[views]
@@ -72,8 +73,8 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     for i, view in enumerate(views):
         out[f"render_test_{view:04d}"] = png_bytes(renders[i])
         out[f"variance_test_{view:04d}"] = png_bytes(colormap(maps[i].float()))
-    for view in rec.selected:
-        out[f"picked_{view:04d}"] = png_bytes(ep.pool.images[view])
+    for k, view in enumerate(rec.selected):  # one image series (step = views); the id is in the records
+        out["picked" if k == 0 else f"picked_{k + 1}"] = png_bytes(ep.pool.images[view])
     return out
 
 
