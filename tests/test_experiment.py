@@ -481,7 +481,7 @@ def test_a_relaunch_after_a_killed_driver_closes_its_runs_left_running(base):
 
     from mlflow import MlflowClient
 
-    from pipeline.experiment.lock import LOCK_NAME
+    from pipeline.experiment.lock import HOLDER_NAME
     from pipeline.experiment.tracking import MlflowTracker
     out = base / "killed_driver"
     cfg = composed(["experiment=debug", *TINY, "method=[random]", "tracking=mlflow", f"output_dir={out}"])
@@ -491,7 +491,7 @@ def test_a_relaunch_after_a_killed_driver_closes_its_runs_left_running(base):
     other = MlflowClient(tracker.uri).create_run(tracker.experiment_id, tags={"output_dir": "/elsewhere"})
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()  # a pid that no longer runs
-    (out / LOCK_NAME).write_text(json_module.dumps({"host": os.uname().nodename, "pid": proc.pid, "since": "x"}))
+    (out / HOLDER_NAME).write_text(json_module.dumps({"host": os.uname().nodename, "pid": proc.pid, "since": "x"}))
     summary = run_sweep(cfg)
     assert summary.finished == 1
     client = MlflowClient(tracker.uri)

@@ -100,7 +100,7 @@ def test_a_stopped_driver_exits_cleanly_and_a_relaunch_resumes(tmp_path, sig):
     before = RecordsFile(out).frame
     done_before = set(before.query("kind == 'final' and status == 'FINISHED'")["config_hash"]) \
         if not before.empty else set()
-    assert not (out / ".sweep.lock").exists()
+    assert not (out / ".sweep.holder.json").exists()  # released cleanly: no holder note left
     if sig != signal.SIGINT:
         return
     again = subprocess.run([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", "executor.num_cpus=2",
@@ -148,7 +148,7 @@ def test_a_sigkilled_driver_loses_no_finished_job_and_redoes_none(tmp_path):
     proc.wait(timeout=60)
     frame = RecordsFile(out).frame
     done = set(frame.query("kind == 'final' and status == 'FINISHED'")["config_hash"])
-    assert 1 <= len(done) < 4 and (out / ".sweep.lock").exists()
+    assert 1 <= len(done) < 4 and (out / ".sweep.holder.json").exists()  # the killed driver's note
     again = subprocess.run([str(BIN / "pipeline-run"), *SWEEP, "executor=ray", "executor.num_cpus=2",
                             "tracking=mlflow", f"output_dir={out}"], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stdout + again.stderr

@@ -1,7 +1,10 @@
-"""One sweep per output folder: a lock file naming the holder (host, pid, process start time).
+"""One sweep per output folder: an operating-system lock (``filelock``, flock on POSIX) that the
+kernel frees when its process dies, however it dies, and a note naming the holder (host, pid,
+command, since when) for the message a refused launch prints.
 
-A second launch on a folder a running sweep holds is refused; a lock left by a killed sweep is
-stale (its process is gone, or the pid now belongs to another process) and is taken over.
+A second launch on a folder a running sweep holds is refused with the holder named; a folder
+whose lock is free but whose holder note was left behind (a killed driver) is taken over, and the
+launch says so (``stale``), so it can close what that driver left open.
 """
 
 from __future__ import annotations
@@ -9,75 +12,56 @@ from __future__ import annotations
 import json
 import os
 import socket
+import sys
 import time
 from pathlib import Path
 
-LOCK_NAME = ".sweep.lock"
+from filelock import FileLock, Timeout
+
+LOCK_NAME = ".sweep.lock"           # the OS lock
+HOLDER_NAME = ".sweep.holder.json"  # who holds it (removed on a clean release)
 
 
 class SweepLocked(RuntimeError):
     """The output folder is held by a sweep that is still running."""
 
 
-def _start_time(pid: int) -> str | None:
-    """The process's start time in clock ticks since boot (Linux /proc), None elsewhere."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return None
-
-
-def _alive(holder: dict) -> bool:
-    if holder.get("host") != socket.gethostname():
-        return True  # another machine's process cannot be checked: assume it runs
-    pid = int(holder.get("pid", -1))
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    started = _start_time(pid)
-    return started is None or holder.get("started") in (None, started)
-
-
 class SweepLock:
     def __init__(self, folder: str | Path):
-        self.path = Path(folder) / LOCK_NAME
-        self.stale: dict | None = None  # the holder of a stale lock this one replaced
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK_NAME
+        self.holder_path = self.folder / HOLDER_NAME
+        self.stale: dict | None = None  # the note of a killed holder this lock replaced
+        self._lock = FileLock(str(self.path), timeout=0)
 
     def acquire(self) -> "SweepLock":
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        me = {"host": socket.gethostname(), "pid": os.getpid(), "started": _start_time(os.getpid()),
-              "since": time.strftime("%Y-%m-%d %H:%M:%S")}
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            except FileExistsError:
-                holder = self._holder()
-                if holder is not None and _alive(holder):
-                    raise SweepLocked(
-                        f"output_dir {self.path.parent} is held by a running sweep (pid {holder.get('pid')} "
-                        f"on {holder.get('host')}, since {holder.get('since')}): wait for it, stop it, or "
-                        f"pass another output_dir") from None
-                self.stale = holder
-                self.path.unlink(missing_ok=True)
-                continue
-            with os.fdopen(fd, "w") as f:
-                json.dump(me, f)
-            return self
-        raise SweepLocked(f"{self.path}: could not take the lock (another sweep took it at the same time)")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self._lock.acquire()
+        except Timeout:
+            holder = self._holder() or {}
+            raise SweepLocked(
+                f"output_dir {self.folder} is held by a running sweep (pid {holder.get('pid', '?')} on "
+                f"{holder.get('host', '?')}, since {holder.get('since', '?')}, command: "
+                f"{holder.get('command', '?')}): wait for it, stop it, or pass another output_dir") from None
+        self.stale = self._holder()  # a note without a live lock: its driver was killed
+        me = {"host": socket.gethostname(), "pid": os.getpid(), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+              "command": " ".join(sys.argv)}
+        self.holder_path.write_text(json.dumps(me))
+        return self
 
     def _holder(self) -> dict | None:
         try:
-            return json.loads(self.path.read_text())
+            return json.loads(self.holder_path.read_text())
+        except FileNotFoundError:
+            return None
         except (OSError, ValueError):
-            return None  # unreadable: treat as stale
+            return {"pid": "?", "since": "?", "note": "unreadable holder note"}
 
     def release(self) -> None:
-        holder = self._holder()
-        if holder is not None and holder.get("pid") == os.getpid():
-            self.path.unlink(missing_ok=True)
+        if self._lock.is_locked:
+            self.holder_path.unlink(missing_ok=True)
+            self._lock.release()
 
     def __enter__(self) -> "SweepLock":
         return self.acquire()
