@@ -212,3 +212,14 @@ def test_load_scene_errors_name_the_folder(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="empty: neither a Blender scene"):
         load_scene(tmp_path / "empty")
+
+
+def test_generating_the_scene_reports_every_view_and_the_cli_prints_tenths(tmp_path, capsys):
+    from pipeline.data.cli import main as data_main
+    from pipeline.data.synthetic import generate
+    heard = []
+    generate(tmp_path / "a", size=8, n_train=3, n_test=2, progress=lambda *a: heard.append(a))
+    assert heard == [("train", 1, 3), ("train", 2, 3), ("train", 3, 3), ("test", 1, 2), ("test", 2, 2)]
+    assert data_main(["generate", str(tmp_path / "b"), "--size", "8"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "train: 10/100 views" and err[-1] == "test: 200/200 views" and len(err) == 20

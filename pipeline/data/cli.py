@@ -35,6 +35,12 @@ def summary(path: Path, deep: bool = False) -> dict:
     return out
 
 
+def print_progress(split: str, done: int, total: int) -> None:
+    """One line per tenth of a split (stderr, so stdout stays the JSON summary)."""
+    if done == total or done * 10 // total > (done - 1) * 10 // total:
+        print(f"{split}: {done}/{total} views", file=sys.stderr, flush=True)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="pipeline-data", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -52,7 +58,7 @@ def main(argv=None) -> int:
             print(json.dumps(summary(args.path, args.deep)))
         else:
             from pipeline.data.synthetic import generate
-            out = generate(args.out, seed=args.seed, size=args.size)
+            out = generate(args.out, seed=args.seed, size=args.size, progress=print_progress)
             print(json.dumps({"written": str(out), "seed": args.seed, "size": args.size}))
     except (DataError, ValueError) as err:
         print(f"pipeline-data: error: {err}", file=sys.stderr)

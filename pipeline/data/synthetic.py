@@ -20,6 +20,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -227,8 +228,9 @@ def render_view(c2w: Tensor, size: int, textures: list[Tensor]) -> np.ndarray:
 
 
 def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100,
-             n_test: int = 200) -> Path:
-    """Write the scene in the Blender layout under ``out``; returns the folder."""
+             n_test: int = 200, progress: Callable[[str, int, int], None] | None = None) -> Path:
+    """Write the scene in the Blender layout under ``out``; returns the folder. ``progress(split,
+    done, total)`` hears each written view (the caller decides how often to say so)."""
     if size < 8:
         raise ValueError(f"size must be at least 8 pixels, got {size}")
     out = Path(out)
@@ -240,6 +242,8 @@ def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100
             c2w = c2w_opengl(direction * RADIUS)
             Image.fromarray(render_view(c2w, size, textures), "RGBA").save(out / split / f"r_{i}.png")
             frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
+            if progress is not None:
+                progress(split, i + 1, count)
         with open(out / f"transforms_{split}.json", "w") as f:
             json.dump({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}, f, indent=1)
     with open(out / "scene.json", "w") as f:

@@ -107,6 +107,12 @@ def save_artifacts(output_dir: Path, job: dict, outcome: dict) -> None:
         (folder / "result.json").write_text(json.dumps(outcome["result"], default=str))
 
 
+def every_quarter(split: str, done: int, total: int) -> None:
+    """A progress line at each quarter of a split of the generated scene."""
+    if done == total or done * 4 // total > (done - 1) * 4 // total:
+        LOG.info(f"  {split}: {done}/{total} views")
+
+
 def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
     """Generate the embedded scene if needed, then read each (scene, resolution) once.
     Returns the scenes and one error per scene that cannot be read (naming the dataset key)."""
@@ -121,7 +127,8 @@ def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
             options = job["generate"]
             LOG.info(f"generating the default scene into {path} ...")
             generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
-                     n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
+                     n_train=options.get("n_train", 100), n_test=options.get("n_test", 200),
+                     progress=every_quarter)
         try:
             scene = load_scene(path, width=episode_config(job).fit.image_width)
         except Exception as err:
