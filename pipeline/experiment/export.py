@@ -85,11 +85,16 @@ def main(argv=None) -> int:
     try:
         model = read_model(args.source, args.mlflow_uri)
         out = args.out or default_out(args.source, args.format, bool(args.mlflow_uri))
-        ply.save(model, out, args.format)
+        data = ply.export_bytes(model, args.format)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(data)
+        kept = ply.written_count(data, args.format)
     except ValueError as err:
         print(f"pipeline-export: error: {err}", file=sys.stderr)
         return 1
-    print(f"{out}: {len(model)} Gaussians, SH degree {model.sh_degree}, format {args.format}")
+    dropped = f" ({len(model) - kept} of the model's {len(model)} dropped)" if kept != len(model) else ""
+    print(f"{out}: {kept} Gaussians{dropped}, SH degree {model.sh_degree}, format {args.format}, "
+          f"{len(data) / 2 ** 20:.2f} MiB")
     return 0
 
 

@@ -4,7 +4,8 @@ The INRIA PLY (what every 3DGS viewer reads) stores the raw parameters as float3
 properties: x, y, z; f_dc_0..2 (SH DC per channel); f_rest_* (the higher SH coefficients,
 channel-major: all of red's, then green's, then blue's); opacity (the logit); scale_0..2 (log
 scales); rot_0..3 (the quaternion, w first). ``ply_compressed`` (SuperSplat) and ``splat``
-(antimatter15) are lossy viewer formats: written, not read back. Reading goes through
+(antimatter15) are lossy viewer formats: written, not read back; ``spz`` (Niantic, through
+``gsply``) is quantised but read back too. Reading goes through
 ``plyfile`` (binary of either endianness or ASCII; extra properties such as normals or uchar
 colours are ignored).
 """
@@ -19,17 +20,74 @@ import torch
 
 from pipeline.splat.gaussians import Gaussians, num_sh_bases
 
-FORMATS = ("ply", "ply_compressed", "splat")
-SUFFIX = {"ply": ".ply", "ply_compressed": ".compressed.ply", "splat": ".splat"}
+FORMATS = ("ply", "ply_compressed", "splat", "spz")
+SUFFIX = {"ply": ".ply", "ply_compressed": ".compressed.ply", "splat": ".splat", "spz": ".spz"}
 
 
 def export_bytes(gaussians: Gaussians, fmt: str = "ply") -> bytes:
-    """The model in ``fmt`` (gsplat's exporter); rows with a non-finite value are dropped by it."""
+    """The model in ``fmt``: gsplat's exporter (rows with a non-finite value are dropped by it),
+    or Niantic's SPZ through ``gsply`` (quantised: about 10x smaller than the PLY)."""
     if fmt not in FORMATS:
         raise ValueError(f"export format must be one of {FORMATS}, got {fmt!r}")
-    from gsplat.exporter import export_splats
     g = gaussians.detach().to(device="cpu", dtype=torch.float32)
+    if fmt == "spz":
+        return _spz_bytes(g)
+    from gsplat.exporter import export_splats
     return export_splats(g.means, g.log_scales, g.quats, g.logit_opacities, g.sh0, g.shN, format=fmt)
+
+
+def _gsdata(g: Gaussians):
+    import gsply
+    quats = torch.nn.functional.normalize(g.quats, dim=-1)  # SPZ stores unit quaternions
+    return gsply.GSData(means=g.means.numpy(), scales=g.log_scales.numpy(), quats=quats.numpy(),
+                        opacities=g.logit_opacities.numpy(), sh0=g.sh0[:, 0].numpy(), shN=g.shN.numpy(),
+                        _format=gsply.create_ply_format(sh_degree=g.sh_degree))
+
+
+def _spz_bytes(g: Gaussians) -> bytes:
+    import tempfile
+
+    import gsply
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "model.spz"
+        gsply.write_spz(path, _gsdata(g))
+        return path.read_bytes()
+
+
+def load_spz(path: Path) -> Gaussians:
+    """A Niantic SPZ file (``gsply``) as float32 ``Gaussians``."""
+    import gsply
+    try:
+        data = gsply.read_spz(path)
+    except Exception as err:  # gsply raises its own errors for a bad container
+        raise ValueError(f"{path}: not a readable SPZ file ({err})") from None
+    n = data.means.shape[0]
+    shn = np.zeros((n, 0, 3), np.float32) if data.shN is None else np.asarray(data.shN, np.float32)
+    g = Gaussians(means=torch.from_numpy(np.asarray(data.means, np.float32)),
+                  log_scales=torch.from_numpy(np.asarray(data.scales, np.float32)),
+                  quats=torch.from_numpy(np.asarray(data.quats, np.float32)),
+                  logit_opacities=torch.from_numpy(np.asarray(data.opacities, np.float32)),
+                  sh0=torch.from_numpy(np.asarray(data.sh0, np.float32))[:, None, :],
+                  shN=torch.from_numpy(shn.reshape(n, -1, 3)))
+    g.validate()
+    return g
+
+
+def written_count(data: bytes, fmt: str) -> int:
+    """How many Gaussians an exported file holds (an exporter may drop rows): the PLY vertex
+    count (the compressed PLY's too), 32 bytes per .splat row, the SPZ header's count."""
+    if fmt == "splat":
+        return len(data) // 32
+    if fmt == "spz":
+        import gzip
+        import struct as st
+        raw = gzip.decompress(data) if data[:2] == b"\x1f\x8b" else data
+        return st.unpack_from("<I", raw, 8)[0]  # magic, version, then the point count
+    head = data[:data.find(b"end_header")].decode("ascii", errors="replace")
+    for line in head.splitlines():
+        if line.startswith("element vertex "):
+            return int(line.split()[2])
+    raise ValueError("the exported PLY has no vertex element")
 
 
 def save(gaussians: Gaussians, path: str | Path, fmt: str = "ply") -> Path:
@@ -68,6 +126,8 @@ def load(path: str | Path) -> Gaussians:
     path = Path(path)
     if not path.exists():
         raise ValueError(f"{path}: no such file")
+    if path.suffix == ".spz":
+        return load_spz(path)
     vertex = _vertex_table(path)
     names = [prop.name for prop in vertex.properties]
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
