@@ -314,3 +314,79 @@ def test_the_viewer_in_a_headless_browser(viewer, tmp_path):
             assert table(first) != table(second)
         finally:
             browser.close()
+
+
+# -- what users touch (issue 29): each row of the viewer's state table --------------------------
+def test_a_round_change_clears_the_goal_and_re_renders_the_shown_camera(viewer):
+    from pipeline.view.server import CameraKey
+    server, v = viewer
+    run = v.run
+    v.show_round(1)
+    v.goal_start.value, v.goal_width.value = 90.0, 150.0
+    goal = v.score()
+    assert goal is not None and v.goal_sector is not None and "Next best view" in v.goal_text.content
+    key = CameraKey("test", run.views.test_ids[0])
+    v.show_camera(key)
+    before = np.array(v.image_render.image)
+    v.show_round(0)
+    assert v.goal is None and v.goal_sector is None  # the red sector is gone with the scores
+    assert "Next best view" not in v.goal_text.content and "Round changed to 0" in v.goal_text.content
+    assert v.shown == key and "round 0's model" in v.camera_text.content
+    if not run.round_state(0).model_is_final:  # each round's own model: the panel changed with it
+        assert not np.array_equal(np.asarray(before), np.asarray(v.image_render.image))
+
+
+def test_the_camera_dropdown_follows_the_shown_camera_and_inspecting_never_edits_the_goal(viewer):
+    from pipeline.view.server import CameraKey
+    server, v = viewer
+    view = v.run.views.pool_ids[-1]
+    v.goal_kind.value, v.goal_views.value = "picked cameras", ""
+    v.show_camera(CameraKey("pool", view))  # e.g. a click on its frustum
+    assert v.camera_choice.value == f"pool {view}" and v.shown == CameraKey("pool", view)
+    assert v.goal_views.value == ""          # looking at a camera is not adding it
+    v.add_shown_to_goal()
+    v.add_shown_to_goal()                     # twice: still once
+    assert v.goal_views.value == str(view)
+    v.show_camera(CameraKey("test", v.run.views.test_ids[0]))
+    v.add_shown_to_goal()
+    assert v.goal_views.value == str(view) and "test views cannot" in v.goal_text.content
+
+
+def test_candidate_colours_cannot_be_confused_with_any_role_and_there_is_a_legend(viewer):
+    from pipeline.view.geometry import ROLE_COLOURS, standing_colour
+    from pipeline.view.server import LEGEND
+    ramp = np.array([standing_colour(x) for x in np.linspace(0, 1, 21)], dtype=float)
+    for role in ("initial", "selected", "picked", "probe", "test"):
+        nearest = np.linalg.norm(ramp - np.array(ROLE_COLOURS[role], dtype=float), axis=1).min()
+        assert nearest > 60, (role, nearest)
+    assert standing_colour(0.0) != standing_colour(1.0)
+    for word in ("blue", "green", "red", "purple", "grey", "dark teal", "bright cyan", "orange"):
+        assert word in LEGEND
+
+
+def test_a_sweep_folder_lists_its_jobs_and_a_moved_scene_is_found_with_data_root(tiny_run, tmp_path, capsys):
+    import shutil
+    from pipeline.view.cli import main
+    from pipeline.view.run import load_run
+    job_dir = tiny_run["gopre"]
+    sweep = job_dir.parent.parent
+    assert main([str(sweep)]) == 1
+    err = capsys.readouterr().err
+    assert "is a sweep folder" in err and f"gopre / " in err and job_dir.name in err
+    # the sweep copied elsewhere, its scene moved: found by --data-root, named when missing
+    copy = tmp_path / "copied"
+    shutil.copytree(sweep, copy, ignore=shutil.ignore_patterns("mlflow.db", "mlartifacts"))
+    run = load_run(str(job_dir))
+    scene = Path(run.job["scene_path"]).resolve()
+    moved = tmp_path / "data" / scene.name
+    shutil.copytree(scene, moved)
+    jobs = json.loads((copy / "jobs.json").read_text())
+    for j in jobs:
+        j["scene_path"] = "/nowhere/" + scene.name
+    (copy / "jobs.json").write_text(json.dumps(jobs))
+    (copy / "jobs" / job_dir.name / "artifacts" / "result.json").write_text(json.dumps(
+        {**json.loads((job_dir / "artifacts" / "result.json").read_text()), "scene": "/nowhere/x"}))
+    with pytest.raises(ValueError, match="--data-root"):
+        load_run(str(copy / "jobs" / job_dir.name))
+    assert load_run(str(copy / "jobs" / job_dir.name), data_root=str(tmp_path / "data")).scene is not None
+    assert load_run(str(copy / "jobs" / job_dir.name), scene=str(moved)).selected == run.selected

@@ -3,6 +3,8 @@
     pipeline-view outputs/demo/jobs/<config hash>              # http://127.0.0.1:8080
     pipeline-view RUN_ID --mlflow-uri sqlite:///outputs/demo/mlflow.db --port 8090
     pipeline-view outputs/demo/jobs/<hash> --host 0.0.0.0       # reachable from other machines
+    pipeline-view outputs/demo                                  # a sweep folder: lists its jobs
+    pipeline-view copied/jobs/<hash> --data-root /data          # a sweep copied from another machine
 
 SOURCE: a job folder (finished, or running: the rounds so far) or an MLflow run id of a job
 with ``--mlflow-uri`` (its output_dir/config_hash tags name the job folder, which must be here).
@@ -18,13 +20,13 @@ import time
 
 
 def start(source: str, mlflow_uri: str | None = None, host: str = "127.0.0.1", port: int = 8080,
-          start_round: int | None = None):
+          start_round: int | None = None, scene: str | None = None, data_root: str | None = None):
     """Load the run and serve it; returns (viser server, EpisodeViewer). Raises ValueError."""
     import viser  # the viewing edge
 
     from pipeline.view.run import load_run
     from pipeline.view.server import EpisodeViewer
-    run = load_run(source, mlflow_uri)
+    run = load_run(source, mlflow_uri, scene, data_root)
     server = viser.ViserServer(host=host, port=port, label="gopre", verbose=False)
     try:
         viewer = EpisodeViewer(run, server, start_round)
@@ -42,9 +44,13 @@ def main(argv=None) -> int:
     parser.add_argument("--host", default="127.0.0.1", help="interface to serve on (default loopback)")
     parser.add_argument("--port", type=int, default=8080)
     parser.add_argument("--round", type=int, default=None, help="round shown first (default the last)")
+    parser.add_argument("--scene", default=None, help="the scene folder, when not where the job ran")
+    parser.add_argument("--data-root", default=None,
+                        help="where the datasets are on this machine (a sweep copied from another)")
     args = parser.parse_args(argv)
     try:
-        server, viewer = start(args.source, args.mlflow_uri, args.host, args.port, args.round)
+        server, viewer = start(args.source, args.mlflow_uri, args.host, args.port, args.round,
+                               args.scene, args.data_root)
     except (ValueError, OSError) as err:
         print(f"pipeline-view: {err}", file=sys.stderr)  # every error names its source
         return 1

@@ -118,10 +118,12 @@ def lower_is_better(scores: dict[int, float], picked: list[int]) -> bool:
     return scores[picked[0]] <= min(scores.values())
 
 
+CANDIDATE_RAMP = ((0, 70, 80), (130, 255, 255))  # dark teal (worst) -> bright cyan (best)
+
+
 def standing_colour(standing: float) -> tuple[int, int, int]:
-    """Dark blue (worst) -> teal -> yellow (best), a viridis-like ramp."""
-    stops = np.array([[68, 1, 84], [33, 145, 140], [253, 231, 37]], dtype=np.float64)
-    x = min(max(standing, 0.0), 1.0) * 2
-    low = min(int(x), 1)
-    rgb = stops[low] + (x - low) * (stops[low + 1] - stops[low])
+    """A remaining candidate's colour by its score's standing in [0, 1]: dark teal (worst) to
+    bright cyan (best), a ramp no role colour lies near (initial, selected, picked, probe, test)."""
+    lo, hi = (np.array(c, dtype=np.float64) for c in CANDIDATE_RAMP)
+    rgb = lo + min(max(standing, 0.0), 1.0) * (hi - lo)
     return tuple(int(round(c)) for c in rgb)

@@ -85,8 +85,25 @@ class EpisodeRun:
                           float(rec["test_psnr"]), model, is_final)
 
 
+def sweep_listing(folder: Path) -> str:
+    """What to open in a sweep folder: one line per episode job (method / scene / seed / setting
+    / config hash) and the command for one of them."""
+    jobs = [j for j in json.loads((folder / "jobs.json").read_text()) if j.get("kind", "episode") == "episode"]
+    lines = [f"{folder} is a sweep folder; open one of its {len(jobs)} episode jobs:"]
+    for j in jobs:
+        setting = f", {j['setting']}" if j.get("setting") else ""
+        done = "" if (folder / "jobs" / j["config_hash"]).is_dir() else "  (not started)"
+        lines.append(f"  {j['method']} / {j['scene']} / seed {j['seed']}{setting}: "
+                     f"{folder / 'jobs' / j['config_hash']}{done}")
+    if jobs:
+        lines.append(f"e.g. pipeline-view {folder / 'jobs' / jobs[0]['config_hash']}")
+    return "\n".join(lines)
+
+
 def job_entry(folder: Path) -> dict:
     """The sweep's description of the job in ``folder`` (its ``jobs.json``, matched by hash)."""
+    if (folder / "jobs.json").exists():
+        raise ValueError(sweep_listing(folder))
     listing = folder.parent.parent / "jobs.json"
     if not listing.exists():
         raise ValueError(f"{folder}: no {listing} beside it (pass a job folder "
@@ -99,18 +116,34 @@ def job_entry(folder: Path) -> dict:
     raise ValueError(f"{folder}: no job with config hash {folder.name!r} in {listing}")
 
 
-def scene_of(job: dict, result: dict | None) -> Scene:
+def scene_candidates(job: dict, result: dict | None, scene: str | None = None,
+                     data_root: str | None = None) -> list[str]:
+    """Where the job's scene may be: ``scene`` (given), under ``data_root`` (as <root>/<scene> or
+    <root>/<dataset folder>/<scene>, for a sweep copied to another machine), then where it ran."""
+    if scene is not None:
+        return [str(scene)]
+    tried = []
+    if data_root is not None:
+        ran = Path(job["scene_path"])
+        tried += [str(Path(data_root) / ran.name), str(Path(data_root) / ran.parent.name / ran.name)]
+    if result and result.get("scene"):
+        tried.append(result["scene"])
+    return tried + [job["scene_path"]]
+
+
+def scene_of(job: dict, result: dict | None, scene: str | None = None,
+             data_root: str | None = None) -> Scene:
     """The scene the job ran on, read at the episode's image width."""
     width = episode_config(job).fit.image_width
-    tried = [result["scene"]] if result and result.get("scene") else []
-    tried.append(job["scene_path"])
+    tried = scene_candidates(job, result, scene, data_root)
     for path in tried:
         if Path(path).exists():
             return load_scene(path, width=width)
-    raise ValueError(f"the scene of job {job['config_hash']} is not here: tried {', '.join(tried)}")
+    raise ValueError(f"the scene of job {job['config_hash']} is not here: tried {', '.join(tried)} "
+                     "(pass --scene PATH, or --data-root for a sweep copied from another machine)")
 
 
-def load_folder(folder: Path) -> EpisodeRun:
+def load_folder(folder: Path, scene: str | None = None, data_root: str | None = None) -> EpisodeRun:
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such job folder")
@@ -139,7 +172,7 @@ def load_folder(folder: Path) -> EpisodeRun:
         raise ValueError(f"{folder}: neither artifacts/result.json nor checkpoint/episode.pt: "
                          "the job has not finished a round")
     cfg = episode_config(job)
-    scene = scene_of(job, result)
+    scene = scene_of(job, result, scene, data_root)
     views = build_protocol(scene, cfg.protocol)
     kept = {i: folder / "rounds" / ROUND_MODEL.format(i) for i in range(len(records))}
     return EpisodeRun(folder, job, cfg, scene, views, list(initial), list(selected), list(records),
@@ -157,7 +190,9 @@ def folder_of_mlflow_run(uri: str, run_id: str) -> Path:
     return Path(tags["output_dir"]) / "jobs" / tags["config_hash"]
 
 
-def load_run(source: str, mlflow_uri: str | None = None) -> EpisodeRun:
-    """A job folder, or an MLflow run id with ``mlflow_uri``; ValueError names what is missing."""
+def load_run(source: str, mlflow_uri: str | None = None, scene: str | None = None,
+             data_root: str | None = None) -> EpisodeRun:
+    """A job folder, or an MLflow run id with ``mlflow_uri``; ValueError names what is missing.
+    ``scene`` / ``data_root``: where the scene is when not where the job ran."""
     folder = folder_of_mlflow_run(mlflow_uri, source) if mlflow_uri else Path(source)
-    return load_folder(folder)
+    return load_folder(folder, scene, data_root)

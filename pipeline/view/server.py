@@ -29,6 +29,10 @@ from pipeline.view.goal import GoalScores, gopre_options, pool_ids, score_goal
 from pipeline.view.run import EpisodeRun, RoundState
 
 DIRECTIONS = ("clockwise", "counter-clockwise")
+LEGEND = ("**Colours**: initial views **blue** · selected **green** (labelled #k in pick order) · "
+          "this round's pick / the goal's next best view **red** · probes **purple** · test views "
+          "**grey** (smaller) · remaining candidates from **dark teal** (worst score) to **bright "
+          "cyan** (best) · the protocol's target sector **orange**, a drawn goal's sector **red**")
 GOAL_KINDS = ("sector", "picked cameras")
 
 
@@ -80,6 +84,8 @@ class EpisodeViewer:
         self.variances: dict[int, torch.Tensor] = {}
         self.frustums: dict[CameraKey, object] = {}
         self.labels: dict[int, object] = {}
+        self.shown: CameraKey | None = None   # the camera the panel shows
+        self.goal_sector = None              # the drawn goal's outline, while its scores stand
         rounds = len(run.rounds)
         if rounds == 0:
             raise ValueError(f"{run.folder}: the episode has no finished selection round to show")
@@ -161,11 +167,13 @@ class EpisodeViewer:
             self.goal_direction = gui.add_dropdown(
                 "Direction", DIRECTIONS, initial_value=DIRECTIONS[0 if sector.get("clockwise", True) else 1])
             self.goal_views = gui.add_text("Picked views", "", hint="pool view ids, e.g. 3, 17, 40 "
-                                           "(a click on a camera adds it when the goal is 'picked cameras')")
+                                           "(or show a camera and press 'Add the shown camera')")
             self.goal_probes = gui.add_number("Probes K", int(run.views.probes), min=1, step=1)
+            self.add_view_button = gui.add_button("Add the shown camera to the picked views")
             self.score_button = gui.add_button("Score next view")
             self.goal_text = gui.add_markdown("Draw a goal and press *Score next view*.")
         self.score_button.on_click(lambda _e: self.score())
+        self.add_view_button.on_click(lambda _e: self.add_shown_to_goal())
         with gui.add_folder("Camera"):
             names = [k.label for k in self.frustums]
             self.camera_choice = gui.add_dropdown("Camera view", names, initial_value=names[0])
@@ -174,19 +182,34 @@ class EpisodeViewer:
             self.image_truth = gui.add_image(blank, label="ground truth")
             self.image_render = gui.add_image(blank, label="render")
             self.image_variance = gui.add_image(blank, label="predictive variance")
-        self.camera_choice.on_update(lambda _e: self.show_camera(self._key_of(self.camera_choice.value)))
+        self.camera_choice.on_update(lambda _e: self._chosen(self.camera_choice.value))
         with gui.add_folder("Cameras"):
             self.camera_list = gui.add_markdown("")
+            gui.add_markdown(LEGEND)
 
     def _key_of(self, label: str) -> CameraKey:
         split, view = label.split()
         return CameraKey(split, int(view))
 
+    def _chosen(self, label: str) -> None:
+        """The dropdown's choice (ignored when it only follows a camera shown otherwise)."""
+        key = self._key_of(label)
+        if key != self.shown:
+            self.show_camera(key)
+
     # -- actions ------------------------------------------------------------------------------
     def show_round(self, index: int) -> None:
+        """Show round ``index``: its model, its roles and colours, the shown camera re-rendered with
+        it; a goal scored on another round's model is cleared (panel and scene agree)."""
         with self.lock:
             self.state = self.run.round_state(index)
-            self.goal = None
+            had_goal, self.goal = self.goal is not None, None
+            if self.goal_sector is not None:
+                self.goal_sector.remove()
+                self.goal_sector = None
+            if had_goal:
+                self.goal_text.content = (f"Round changed to {index}: the goal's scores were for another "
+                                          "round's model. Press *Score next view* to score it here.")
             self._show_model()
             self._colour()
             state = self.state
@@ -195,6 +218,8 @@ class EpisodeViewer:
             self.round_text.content = (f"Round {index}: {len(state.taken)} views taken, PSNR "
                                        f"{state.psnr:.2f} dB, picked {', '.join(map(str, state.picked))}; "
                                        f"showing {model}")
+            if self.shown is not None:  # the panel shows this round's model too
+                self._show_camera(self.shown)
 
     def _colour(self) -> None:
         state, goal = self.state, self.goal
@@ -236,7 +261,7 @@ class EpisodeViewer:
             f"- {'next best' if self.goal is not None else 'picked this round'}: {ids('picked')}",
             f"- probes: {ids('probe')}",
             f"- candidates: {sum(r == 'candidate' for r, _ in roles.values())} "
-            f"(coloured by score: yellow = best, blue = worst)",
+            f"(coloured by score: bright cyan = best, dark teal = worst)",
             f"- test views: {len(self.run.views.test_ids)}",
         ])
 
@@ -279,14 +304,27 @@ class EpisodeViewer:
             return self.goal
 
     def _draw_goal(self, manifold: dict) -> None:
+        if self.goal_sector is not None:
+            self.goal_sector.remove()
+            self.goal_sector = None
         if manifold["kind"] != "sector":
-            self.server.scene.add_line_segments("/goal_sector", np.zeros((1, 2, 3)), colors=ROLE_COLOURS["goal"],
-                                                visible=False)
             return
         resolved = resolved_manifold(manifold, self.run.scene, torch.tensor(self.run.views.up, dtype=torch.float64))
         assert isinstance(resolved, SectorManifold)
-        self.server.scene.add_line_segments("/goal_sector", sector_outline(resolved, self.run.pool.cameras),
-                                            colors=ROLE_COLOURS["picked"], thickness=0.12 * self._camera_scale())
+        self.goal_sector = self.server.scene.add_line_segments(
+            "/goal_sector", sector_outline(resolved, self.run.pool.cameras), colors=ROLE_COLOURS["picked"],
+            thickness=0.12 * self._camera_scale())
+
+    def add_shown_to_goal(self) -> None:
+        """Append the shown pool camera to the picked views of the goal (inspecting alone never
+        edits the goal)."""
+        key = self.shown
+        if key is None or key.split != "pool":
+            self.goal_text.content = "Show a pool camera first (test views cannot be part of a goal)."
+            return
+        views = self.goal_views.value.strip()
+        if str(key.index) not in views.replace(",", " ").split():
+            self.goal_views.value = f"{views}, {key.index}" if views else str(key.index)
 
     def variance(self) -> torch.Tensor:
         """S = 1 / (H_train + lambda) of the shown round's taken views, cached per round."""
@@ -300,23 +338,28 @@ class EpisodeViewer:
 
     def show_camera(self, key: CameraKey) -> None:
         with self.lock:
-            run, g = self.run, self.state.model
-            split = run.pool if key.split == "pool" else run.test
-            cams = split.cameras[[key.index]]
-            background = run.scene.background.to(g.means)
-            with torch.no_grad():
-                image = render(g, cams, background).rgb[0]
-            variance = predictive_variance_maps(g, cams, self.variance(), background)[0].sum(-1)
-            self.image_truth.image = enlarged(to_uint8(split.images[key.index]))
-            self.image_render.image = enlarged(to_uint8(image))
-            self.image_variance.image = enlarged(to_uint8(colormap(variance)))
-            role = ""
-            if key.split == "pool":
-                role = camera_roles(run, self.state, self.goal)[key.index][1]
-                scores = self.goal.scores if self.goal is not None else self.state.scores
-                if key.index in scores:
-                    role += f", score {scores[key.index]:.6g}"
-            self.camera_text.content = f"**{key.label}** ({split.names[key.index]}) {role}"
-            if key.split == "pool" and self.goal_kind.value == "picked cameras":
-                views = self.goal_views.value.strip()
-                self.goal_views.value = f"{views}, {key.index}" if views else str(key.index)
+            self._show_camera(key)
+
+    def _show_camera(self, key: CameraKey) -> None:
+        """The panel shows ``key`` with the shown round's model; the dropdown follows."""
+        self.shown = key
+        if self.camera_choice.value != key.label:
+            self.camera_choice.value = key.label
+        run, g = self.run, self.state.model
+        split = run.pool if key.split == "pool" else run.test
+        cams = split.cameras[[key.index]]
+        background = run.scene.background.to(g.means)
+        with torch.no_grad():
+            image = render(g, cams, background).rgb[0]
+        variance = predictive_variance_maps(g, cams, self.variance(), background)[0].sum(-1)
+        self.image_truth.image = enlarged(to_uint8(split.images[key.index]))
+        self.image_render.image = enlarged(to_uint8(image))
+        self.image_variance.image = enlarged(to_uint8(colormap(variance)))
+        role = ""
+        if key.split == "pool":
+            role = camera_roles(run, self.state, self.goal)[key.index][1]
+            scores = self.goal.scores if self.goal is not None else self.state.scores
+            if key.index in scores:
+                role += f", score {scores[key.index]:.6g}"
+        self.camera_text.content = (f"**{key.label}** ({split.names[key.index]}) {role} · round "
+                                    f"{self.state.index}'s model")
