@@ -390,3 +390,32 @@ def test_a_sweep_folder_lists_its_jobs_and_a_moved_scene_is_found_with_data_root
         load_run(str(copy / "jobs" / job_dir.name))
     assert load_run(str(copy / "jobs" / job_dir.name), data_root=str(tmp_path / "data")).scene is not None
     assert load_run(str(copy / "jobs" / job_dir.name), scene=str(moved)).selected == run.selected
+
+
+@pytest.mark.e2e
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on this machine: `make e2e` installs it")
+def test_each_browser_tab_has_its_own_goal(tiny_run):
+    """pipeline-view serves one viewer per tab: a goal scored in one tab is not in a second one."""
+    playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (dev extra)")
+    from pipeline.view.cli import start
+    server, viewers = start(str(tiny_run["gopre"]), port=free_port(), per_client=True)
+    try:
+        with playwright_api.sync_playwright() as p:
+            browser, first = browser_page(p)
+            try:
+                url = f"http://127.0.0.1:{server.get_port()}/"
+                first.goto(url)
+                first.wait_for_function("document.body.innerText.includes('Score next view')", timeout=60_000)
+                first.get_by_role("button", name="Score next view").click()
+                first.wait_for_function("document.body.innerText.includes('Next best view: pool')", timeout=60_000)
+                second = browser.new_page(viewport={"width": 1200, "height": 800})
+                second.goto(url)
+                second.wait_for_function("document.body.innerText.includes('Score next view')", timeout=60_000)
+                assert len(viewers) == 2
+                body = second.inner_text("body")
+                assert "Next best view: pool" not in body and "Draw a goal" in body
+                assert "Next best view: pool" in first.inner_text("body")  # the first tab kept its own
+            finally:
+                browser.close()
+    finally:
+        server.stop()

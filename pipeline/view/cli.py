@@ -20,16 +20,24 @@ import time
 
 
 def start(source: str, mlflow_uri: str | None = None, host: str = "127.0.0.1", port: int = 8080,
-          start_round: int | None = None, scene: str | None = None, data_root: str | None = None):
-    """Load the run and serve it; returns (viser server, EpisodeViewer). Raises ValueError."""
+          start_round: int | None = None, scene: str | None = None, data_root: str | None = None,
+          per_client: bool = False):
+    """Load the run and serve it; returns (viser server, viewer). Raises ValueError.
+
+    ``per_client``: every browser tab gets its own viewer (its own goal, round and camera), and
+    the second value is the {client id: EpisodeViewer} of the tabs connected so far; else one
+    viewer on the server that every tab shares (what the in-process tests drive)."""
     import viser  # the viewing edge
 
     from pipeline.view.run import load_run
-    from pipeline.view.server import EpisodeViewer
+    from pipeline.view.server import EpisodeViewer, per_client_viewers
     run = load_run(source, mlflow_uri, scene, data_root)
+    if not run.rounds:
+        raise ValueError(f"{run.folder}: the episode has no finished selection round to show")
     server = viser.ViserServer(host=host, port=port, label="gopre", verbose=False)
     try:
-        viewer = EpisodeViewer(run, server, start_round)
+        viewer = per_client_viewers(run, server, start_round) if per_client else \
+            EpisodeViewer(run, server, start_round)
     except Exception:
         server.stop()
         raise
@@ -49,13 +57,13 @@ def main(argv=None) -> int:
                         help="where the datasets are on this machine (a sweep copied from another)")
     args = parser.parse_args(argv)
     try:
-        server, viewer = start(args.source, args.mlflow_uri, args.host, args.port, args.round,
-                               args.scene, args.data_root)
+        server, _viewers = start(args.source, args.mlflow_uri, args.host, args.port, args.round,
+                                 args.scene, args.data_root, per_client=True)
     except (ValueError, OSError) as err:
         print(f"pipeline-view: {err}", file=sys.stderr)  # every error names its source
         return 1
-    print(f"pipeline-view: {viewer.run.title} at http://{args.host}:{server.get_port()} (Ctrl-C stops)",
-          flush=True)
+    print(f"pipeline-view: {args.source} at http://{args.host}:{server.get_port()} (Ctrl-C stops; "
+          "each browser tab has its own goal, round and camera)", flush=True)
     try:
         while True:
             time.sleep(1.0)

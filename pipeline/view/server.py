@@ -75,10 +75,14 @@ def camera_roles(run: EpisodeRun, state: RoundState, goal: GoalScores | None) ->
 
 
 class EpisodeViewer:
-    """Builds the scene and GUI on ``server`` for ``run``; every handle it updates is kept."""
+    """Builds the scene and GUI for ``run`` on ``server`` (every browser tab shares them) or, with
+    ``client``, on that one client only (its own goal, round and camera: ``per_client_viewers``);
+    every handle it updates is kept."""
 
-    def __init__(self, run: EpisodeRun, server, start_round: int | None = None):
-        self.run, self.server = run, server
+    def __init__(self, run: EpisodeRun, server, start_round: int | None = None, client=None):
+        self.run, self.server, self.client = run, server, client
+        target = client if client is not None else server
+        self.scene, self.gui = target.scene, target.gui
         self.lock = threading.Lock()
         self.goal: GoalScores | None = None
         self.variances: dict[int, torch.Tensor] = {}
@@ -91,7 +95,7 @@ class EpisodeViewer:
             raise ValueError(f"{run.folder}: the episode has no finished selection round to show")
         self.state = run.round_state(rounds - 1 if start_round is None else min(start_round, rounds - 1))
         up = np.asarray(run.views.up, dtype=np.float64)
-        server.scene.set_up_direction(tuple(up / np.linalg.norm(up)))
+        self.scene.set_up_direction(tuple(up / np.linalg.norm(up)))
         self._place_view(up / np.linalg.norm(up))
         self._add_cameras()
         self._add_protocol_sector()
@@ -113,9 +117,13 @@ class EpisodeViewer:
         first = centers[0] - middle
         side = first - (first @ up) * up
         side = side / max(np.linalg.norm(side), 1e-9)
-        self.server.initial_camera.position = tuple(middle + 1.5 * radius * side + 0.9 * radius * up)
-        self.server.initial_camera.look_at = tuple(middle)
-        self.server.initial_camera.up = tuple(up)
+        position, look_at = tuple(middle + 1.5 * radius * side + 0.9 * radius * up), tuple(middle)
+        if self.client is not None:  # this tab's own camera
+            cam = self.client.camera
+            cam.position, cam.look_at, cam.up_direction = position, look_at, tuple(up)
+        else:                        # where every new tab starts
+            cam = self.server.initial_camera
+            cam.position, cam.look_at, cam.up = position, look_at, tuple(up)
 
     def _add_cameras(self) -> None:
         scale = self._camera_scale()
@@ -126,7 +134,7 @@ class EpisodeViewer:
                 ids = list(self.run.views.test_ids)
             for view in ids:
                 key = CameraKey(split, view)
-                handle = self.server.scene.add_camera_frustum(
+                handle = self.scene.add_camera_frustum(
                     f"/cameras/{split}/{view:04d}", fov=vertical_fov(cams), aspect=cams.width / cams.height,
                     scale=scale * (0.6 if split == "test" else 1.0), color=ROLE_COLOURS["test"],
                     wxyz=wxyz[view], position=positions[view])
@@ -139,16 +147,16 @@ class EpisodeViewer:
             return
         manifold = resolved_manifold(protocol.manifold, self.run.scene,
                                      torch.tensor(self.run.views.up, dtype=torch.float64))
-        self.server.scene.add_line_segments("/protocol_sector", sector_outline(manifold, self.run.pool.cameras),
+        self.scene.add_line_segments("/protocol_sector", sector_outline(manifold, self.run.pool.cameras),
                                             colors=ROLE_COLOURS["goal"], thickness=0.01 * self._camera_scale() * 12)
 
     def _show_model(self) -> None:
         arrays = splat_arrays(self.state.model)
-        self.splat = self.server.scene.add_gaussian_splats("/splat", **arrays)
+        self.splat = self.scene.add_gaussian_splats("/splat", **arrays)
 
     # -- GUI ----------------------------------------------------------------------------------
     def _build_gui(self, rounds: int) -> None:
-        gui, run = self.server.gui, self.run
+        gui, run = self.gui, self.run
         final = f"{run.final_psnr:.2f} dB" if run.final_psnr is not None else "running"
         gui.add_markdown(f"**{run.title}**  \nfinal PSNR {final} · {len(run.initial)} initial + "
                          f"{len(run.selected)} selected views · {len(run.views.test_ids)} test views")
@@ -248,7 +256,7 @@ class EpisodeViewer:
                 text = "next best view" if self.goal is not None else f"next (#{order.get(view, '?')})"
             else:
                 continue
-            self.labels[view] = self.server.scene.add_label(f"/labels/{view:04d}", text, position=positions[view])
+            self.labels[view] = self.scene.add_label(f"/labels/{view:04d}", text, position=positions[view])
 
     def _camera_listing(self, roles: dict[int, tuple[str, str]]) -> str:
         def ids(role):
@@ -311,7 +319,7 @@ class EpisodeViewer:
             return
         resolved = resolved_manifold(manifold, self.run.scene, torch.tensor(self.run.views.up, dtype=torch.float64))
         assert isinstance(resolved, SectorManifold)
-        self.goal_sector = self.server.scene.add_line_segments(
+        self.goal_sector = self.scene.add_line_segments(
             "/goal_sector", sector_outline(resolved, self.run.pool.cameras), colors=ROLE_COLOURS["picked"],
             thickness=0.12 * self._camera_scale())
 
@@ -363,3 +371,17 @@ class EpisodeViewer:
                 role += f", score {scores[key.index]:.6g}"
         self.camera_text.content = (f"**{key.label}** ({split.names[key.index]}) {role} · round "
                                     f"{self.state.index}'s model")
+
+
+def per_client_viewers(run: EpisodeRun, server, start_round: int | None = None) -> dict[int, EpisodeViewer]:
+    """One ``EpisodeViewer`` per connected browser tab, built when it connects and dropped when it
+    leaves, so a second tab never starts with the first one's goal, round or camera."""
+    viewers: dict[int, EpisodeViewer] = {}
+
+    def connected(client) -> None:
+        viewers[client.client_id] = EpisodeViewer(run, server, start_round, client)
+
+    server.on_client_connect(connected)
+    server.on_client_disconnect(lambda client: viewers.pop(client.client_id, None))
+    return viewers
+
