@@ -9,7 +9,7 @@ MODEL is an INRIA-layout PLY (ours, gsplat's, INRIA's, nerfstudio's export); SCE
 COLMAP folder. The model is rendered at the scene's cameras scaled to ``--width`` (default: the
 images' own width) over the scene's background, and PSNR, SSIM and LPIPS (when its weights are
 installed; otherwise "unavailable", never a number) are computed per view and averaged, exactly
-as episodes are scored. Prints one JSON object (also written to ``--out``).
+as episodes are scored. Prints one JSON object on one line (also written, indented, to ``--out``).
 """
 
 from __future__ import annotations
@@ -66,11 +66,10 @@ def main(argv=None) -> int:
     except (DataError, ValueError, FileNotFoundError) as err:
         print(f"pipeline-eval: error: {err}", file=sys.stderr)
         return 1
-    text = json.dumps(result, indent=1)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
-    print(text)
+        args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result))  # one line: what scripts parse
     return 0
 
 
