@@ -179,3 +179,19 @@ def test_records_from_older_sweeps_and_new_folders(tmp_path):
     again = RecordsFile(tmp_path / "new" / "sweep")
     assert again.finished_versions() == {"b": None, "c": "v1"}
     assert list(pd.read_parquet(again.path).columns) == ["config_hash", "kind", "status", "code_version"]
+
+
+def test_the_folder_layout_is_the_one_finished_sweeps_were_written_in(tmp_path):
+    """Finished sweeps on disk are found by these paths (a relaunch resumes them, pipeline-view and
+    pipeline-export open them): the layout is a contract, changed only with a migration."""
+    from pipeline.experiment.layout import JobFolder, SweepFolder
+    sweep = SweepFolder(tmp_path)
+    job = sweep.job("abc")
+    rel = lambda p: str(p.relative_to(tmp_path))  # noqa: E731
+    assert [rel(p) for p in (sweep.jobs_file, sweep.records_file, sweep.config_file, sweep.summary_file)] == \
+        ["jobs.json", "records.parquet", "sweep_config.json", "summary.json"]
+    assert [rel(p) for p in (job.path, job.log_file, job.checkpoint_file, job.result_file, job.model_file,
+                             job.round_model(3))] == \
+        ["jobs/abc", "jobs/abc/log.txt", "jobs/abc/checkpoint/episode.pt", "jobs/abc/artifacts/result.json",
+         "jobs/abc/artifacts/model.ply", "jobs/abc/rounds/round_03.ply"]
+    assert SweepFolder.of_job(job.path) == sweep and JobFolder(job.path).hash == "abc"

@@ -22,6 +22,7 @@ from pipeline.acquisition import make_strategy
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
+from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.provenance import code_version
 
 JOB_KINDS = ("episode", "uncertainty")
@@ -165,7 +166,7 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
                                 # images only go to MLflow: none to make without it
                                 "round_images": int(job_cfg.get("round_images") or 0) if tracked else 0,
                                 "round_models": bool(job_cfg.get("round_models") or False),
-                                "job_dir": str(output_dir / "jobs" / job["config_hash"])}
+                                "job_dir": str(SweepFolder(output_dir).job(job["config_hash"]).path)}
             validate_job(job)
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)
             job["code_version"] = code_version()

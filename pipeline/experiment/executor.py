@@ -21,7 +21,7 @@ from typing import Callable
 from pipeline.data.scene import Scene
 from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_handlers,
                                            install_stop_handlers, restore_handlers)
-from pipeline.experiment.job import run_with_retries
+from pipeline.experiment.job import failed_outcome, run_with_retries
 
 OnDone = Callable[[dict, dict], None]
 OnRound = Callable[[dict, dict], None]
@@ -135,9 +135,7 @@ class RayExecutor:
                     with critical():
                         outcome = ray.get(done[0])
                 except Exception:  # the worker died more often than max_retries allows
-                    tb = traceback.format_exc()
-                    outcome = {"status": "FAILED", "attempts": self.max_retries + 1, "errors": [tb],
-                               "traceback": tb, "result": None, "artifacts": {"traceback.txt": tb.encode()}}
+                    outcome = failed_outcome(self.max_retries + 1, [traceback.format_exc()])
                 on_done(job, outcome)
         except SweepInterrupted:
             self.running = self._cancel(ray, pending) if ray is not None else []

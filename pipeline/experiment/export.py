@@ -19,9 +19,8 @@ from pathlib import Path
 
 import torch
 
+from pipeline.experiment.layout import MODEL, JobFolder
 from pipeline.splat import Gaussians, ply
-
-MODEL = "model.ply"
 
 
 def from_checkpoint(path: Path) -> Gaussians:
@@ -50,11 +49,12 @@ def read_model(source: str, mlflow_uri: str | None = None) -> Gaussians:
         return from_mlflow(mlflow_uri, source)
     path = Path(source)
     if path.is_dir():
-        for candidate in (path / "artifacts" / MODEL, path / MODEL):
+        job = JobFolder(path)
+        for candidate in (job.model_file, path / MODEL):
             if candidate.exists():
                 return ply.load(candidate)
-        if (path / "checkpoint" / "episode.pt").exists():
-            return from_checkpoint(path / "checkpoint" / "episode.pt")
+        if job.checkpoint_file.exists():
+            return from_checkpoint(job.checkpoint_file)
         raise ValueError(f"{path}: a folder without artifacts/{MODEL} or checkpoint/episode.pt (pass a "
                          "job folder outputs/<sweep>/jobs/<config hash>)")
     if not path.exists():

@@ -25,6 +25,7 @@ from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
 from pipeline.experiment.build import episode_config, uncertainty_config
+from pipeline.experiment.layout import MODEL, JobFolder
 from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
 
@@ -38,7 +39,7 @@ def set_threads(threads: int) -> None:
 
 
 def _log(folder: Path, line: str) -> None:
-    with open(folder / "log.txt", "a") as f:
+    with open(JobFolder(folder).log_file, "a") as f:
         f.write(f"{time.strftime('%H:%M:%S')} {line}\n")
 
 
@@ -99,7 +100,7 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
 
     def on_selection(ep, rec):
         if job["execution"].get("round_models"):  # the model that made this pick, for pipeline-view
-            ply.save(ep.trainer.rendered_gaussians, folder / "rounds" / f"round_{rec.round:02d}.ply")
+            ply.save(ep.trainer.rendered_gaussians, JobFolder(folder).round_model(rec.round))
         count = job["execution"].get("round_images", 0)
         if count > 0 and report is not None:
             pending_images[rec.round] = round_images(ep, rec, count)
@@ -114,7 +115,7 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
             report(message)
     def on_resume(done: int):  # a retried, interrupted or relaunched job continues where it stopped
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
-    result = run_episode(scene, cfg, folder / "checkpoint", on_round=on_round, on_selection=on_selection,
+    result = run_episode(scene, cfg, JobFolder(folder).checkpoint_dir, on_round=on_round, on_selection=on_selection,
                          device=job["execution"]["device"], on_resume=on_resume)
     if result.final["degraded"]:
         _log(folder, f"warning: final PSNR {result.final['curve_psnr_drop']:.2f} dB below the last "
@@ -127,7 +128,7 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
     truth = views.images.stack(shown).to(preds)
     artifacts = {"selected_views.json": json.dumps({"initial": result.initial, "selected": result.selected,
                                                     "probes": result.probes}).encode(),
-                 "model.ply": ply.export_bytes(result.gaussians)}  # the final model, INRIA 3DGS PLY
+                 MODEL: ply.export_bytes(result.gaussians)}  # the final model, INRIA 3DGS PLY
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts)
@@ -180,5 +181,11 @@ def run_with_retries(job: dict, scene: Scene | None = None, report: Report | Non
             folder = Path(job["execution"]["job_dir"])
             folder.mkdir(parents=True, exist_ok=True)
             _log(folder, f"attempt {attempt}/{attempts} failed:\n{errors[-1]}")
-    return {"status": "FAILED", "attempts": attempts, "errors": errors, "traceback": errors[-1],
+    return failed_outcome(attempts, errors)
+
+
+def failed_outcome(attempts: int, errors: list[str]) -> dict:
+    """The one FAILED outcome (the retries ran out, or the worker process died): the last
+    traceback also as the artifact ``traceback.txt``."""
+    return {"status": "FAILED", "attempts": attempts, "errors": list(errors), "traceback": errors[-1],
             "result": None, "artifacts": {"traceback.txt": errors[-1].encode()}}

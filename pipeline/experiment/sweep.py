@@ -22,6 +22,7 @@ from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
 from pipeline.experiment.console import console, sweep_log
 from pipeline.experiment.executor import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
+from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.lock import SweepLock, SweepLocked
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
@@ -97,14 +98,15 @@ def _headline(outcome: dict) -> str:
 
 def save_artifacts(output_dir: Path, job: dict, outcome: dict) -> None:
     """Artifacts also go to <output_dir>/jobs/<hash>/artifacts (what reports read offline)."""
-    folder = output_dir / "jobs" / job["config_hash"] / "artifacts"
+    job_folder = SweepFolder(output_dir).job(job["config_hash"])
+    folder = job_folder.artifacts
     for name, data in (outcome.get("artifacts") or {}).items():
         path = folder / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(data)
     if outcome.get("result") is not None:
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / "result.json").write_text(json.dumps(outcome["result"], default=str))
+        job_folder.result_file.write_text(json.dumps(outcome["result"], default=str))
 
 
 def every_quarter(split: str, done: int, total: int) -> None:
@@ -235,7 +237,7 @@ def _locked_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: fl
 def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float,
                stale_driver: bool = False) -> SweepSummary:
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    (output_dir / "sweep_config.json").write_text(json.dumps(resolved, indent=1, default=str))
+    (SweepFolder(output_dir).config_file).write_text(json.dumps(resolved, indent=1, default=str))
     records = RecordsFile(output_dir)
     recorded = records.finished_hashes()
     scenes = validate_sweep([j for j in jobs if j["config_hash"] not in recorded],
@@ -251,7 +253,7 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     LOG.info(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
              f"{len(todo)} to run; output in {output_dir}")
     warn_stale(str(cfg.name), records, {j["config_hash"] for j in jobs} & done, output_dir)
-    (output_dir / "jobs.json").write_text(json.dumps(jobs, indent=1))
+    SweepFolder(output_dir).jobs_file.write_text(json.dumps(jobs, indent=1))
     executor = make_executor(resolved["executor"])
     failed, untracked = 0, []
     if todo:
@@ -300,7 +302,7 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
                                    interrupted=interrupted, stopped_by=str(stop),
                                    experiment_id=getattr(tracker, "experiment_id", None))
             tracker.interrupt(asdict(summary))
-            (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
+            SweepFolder(output_dir).summary_file.write_text(json.dumps(asdict(summary), indent=1))
             LOG.info(f"[{cfg.name}] {stop}: finished {finished}, failed {failed}, interrupted "
                      f"{len(interrupted)}, not started {len(todo) - progress.done - len(interrupted)} of "
                      f"{len(todo)} jobs; relaunch the same command to resume (interrupted jobs continue from "
@@ -317,7 +319,7 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
         LOG.info(f"[{cfg.name}] {len(untracked)} finished job(s) could not be tracked ({', '.join(untracked)}); "
                  f"their results are in records.parquet and jobs/<hash>/: once the tracking server is back, "
                  f"relaunch the same command with tracking_sync=true")
-    (output_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=1))
+    SweepFolder(output_dir).summary_file.write_text(json.dumps(asdict(summary), indent=1))
     return summary
 
 
@@ -335,14 +337,15 @@ def sync_tracking(cfg: DictConfig) -> dict:
     missing = [] if finals is None else [h for h in finals["config_hash"] if h not in have]
     synced, unknown = [], []
     for config_hash in missing:
-        job, folder = jobs.get(config_hash), output_dir / "jobs" / config_hash / "artifacts"
-        if job is None or not (folder / "result.json").exists():
+        job, job_folder = jobs.get(config_hash), SweepFolder(output_dir).job(config_hash)
+        folder = job_folder.artifacts
+        if job is None or not job_folder.result_file.exists():
             unknown.append(config_hash)
             continue
         row = finals[finals["config_hash"] == config_hash].iloc[0]
         artifacts = {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
-                     if p.is_file() and p.name != "result.json"}
-        outcome = {"status": "FINISHED", "result": json.loads((folder / "result.json").read_text()),
+                     if p.is_file() and p != job_folder.result_file}
+        outcome = {"status": "FINISHED", "result": json.loads(job_folder.result_file.read_text()),
                    "artifacts": artifacts, "attempts": row.get("attempts"),
                    "seconds": row.get("wall_seconds")}
         run_id = tracker.log_job(job, outcome)

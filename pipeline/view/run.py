@@ -22,9 +22,9 @@ from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.scene import Scene, Split
 from pipeline.experiment.build import episode_config
 from pipeline.experiment.export import from_checkpoint
+from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.splat import Gaussians, ply
 
-ROUND_MODEL = "round_{:02d}.ply"   # under <job folder>/rounds/ (job.round_models=true)
 
 
 @dataclass
@@ -88,23 +88,24 @@ class EpisodeRun:
 def sweep_listing(folder: Path) -> str:
     """What to open in a sweep folder: one line per episode job (method / scene / seed / setting
     / config hash) and the command for one of them."""
-    jobs = [j for j in json.loads((folder / "jobs.json").read_text()) if j.get("kind", "episode") == "episode"]
+    sweep = SweepFolder(folder)
+    jobs = [j for j in json.loads(sweep.jobs_file.read_text()) if j.get("kind", "episode") == "episode"]
     lines = [f"{folder} is a sweep folder; open one of its {len(jobs)} episode jobs:"]
     for j in jobs:
         setting = f", {j['setting']}" if j.get("setting") else ""
-        done = "" if (folder / "jobs" / j["config_hash"]).is_dir() else "  (not started)"
-        lines.append(f"  {j['method']} / {j['scene']} / seed {j['seed']}{setting}: "
-                     f"{folder / 'jobs' / j['config_hash']}{done}")
+        path = sweep.job(j["config_hash"]).path
+        done = "" if path.is_dir() else "  (not started)"
+        lines.append(f"  {j['method']} / {j['scene']} / seed {j['seed']}{setting}: {path}{done}")
     if jobs:
-        lines.append(f"e.g. pipeline-view {folder / 'jobs' / jobs[0]['config_hash']}")
+        lines.append(f"e.g. pipeline-view {sweep.job(jobs[0]['config_hash']).path}")
     return "\n".join(lines)
 
 
 def job_entry(folder: Path) -> dict:
     """The sweep's description of the job in ``folder`` (its ``jobs.json``, matched by hash)."""
-    if (folder / "jobs.json").exists():
+    if SweepFolder(folder).jobs_file.exists():
         raise ValueError(sweep_listing(folder))
-    listing = folder.parent.parent / "jobs.json"
+    listing = SweepFolder.of_job(folder).jobs_file
     if not listing.exists():
         raise ValueError(f"{folder}: no {listing} beside it (pass a job folder "
                          "outputs/<sweep>/jobs/<config hash>)")
@@ -148,13 +149,13 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such job folder")
     job = job_entry(folder)
-    result_file = folder / "artifacts" / "result.json"
-    checkpoint = folder / "checkpoint" / "episode.pt"
+    layout = JobFolder(folder)
+    result_file, checkpoint = layout.result_file, layout.checkpoint_file
     if result_file.exists():
         result = json.loads(result_file.read_text())
         records, initial, selected = result["rounds"][:-1], result["initial"], result["selected"]
         final_psnr = float(result["final"]["psnr"])
-        saved = folder / "artifacts" / "model.ply"  # absent in runs older than the exporter
+        saved = layout.model_file  # absent in runs older than the exporter
         if saved.exists():
             model = ply.load(saved)
         elif checkpoint.exists():
@@ -174,7 +175,7 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
     cfg = episode_config(job)
     scene = scene_of(job, result, scene, data_root)
     views = build_protocol(scene, cfg.protocol)
-    kept = {i: folder / "rounds" / ROUND_MODEL.format(i) for i in range(len(records))}
+    kept = {i: layout.round_model(i) for i in range(len(records))}
     return EpisodeRun(folder, job, cfg, scene, views, list(initial), list(selected), list(records),
                       model, final_psnr, {i: p for i, p in kept.items() if p.exists()})
 
@@ -187,7 +188,7 @@ def folder_of_mlflow_run(uri: str, run_id: str) -> Path:
         raise ValueError(f"MLflow run {run_id} at {uri}: {type(err).__name__}: {err}") from None
     if "output_dir" not in tags or "config_hash" not in tags:
         raise ValueError(f"MLflow run {run_id} at {uri}: not a job run (no output_dir/config_hash tags)")
-    return Path(tags["output_dir"]) / "jobs" / tags["config_hash"]
+    return SweepFolder(Path(tags["output_dir"])).job(tags["config_hash"]).path
 
 
 def load_run(source: str, mlflow_uri: str | None = None, scene: str | None = None,
