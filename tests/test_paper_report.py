@@ -130,3 +130,11 @@ def test_a_mean_on_the_claimed_side_with_an_interval_across_zero_is_not_reproduc
     assert v.outcome == "not reproduced" and "+0.10 dB" in v.detail
     gap = Claim("x", "gap", row="gopre_identity", reference="gopre", paper_gap=-0.7)
     assert judge(gap, part, ["gopre_identity", "gopre"]).outcome == "not reproduced"
+
+
+def test_paper_only_writes_just_the_comparison(tmp_path):
+    frame = records({"gopre": 1.0, "random": 0.0})
+    frame.to_parquet(tmp_path / "records.parquet")
+    assert report_main([str(tmp_path), "--out", str(tmp_path / "o"), "--paper", "--paper-only"]) == 0
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["paper.md"]
+

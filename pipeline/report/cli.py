@@ -34,7 +34,11 @@ def main(argv=None) -> int:
     parser.add_argument("--paper", nargs="?", const="auto", default=None, metavar="TABLE",
                         help="also print the sweep beside the paper's table (paper.md): the table the "
                              "sweep's name maps to, or TABLE (table1_global ... table6_pool)")
+    parser.add_argument("--paper-only", action="store_true",
+                        help="with --paper: write only paper.md into --out (no tables, figures, run list)")
     args = parser.parse_args(argv)
+    if args.paper_only and args.paper is None:
+        parser.error("--paper-only goes with --paper")
     try:
         if args.mlflow_uri or args.experiment:
             if not (args.mlflow_uri and args.experiment):
@@ -54,7 +58,12 @@ def main(argv=None) -> int:
             if frame.empty:
                 raise ValueError(f"no records for seeds {sorted(seeds)}")
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
-        summary = make_report(source, out, frame, args.reference)
+        if args.paper_only:
+            summary = {"out": str(out), "tables": "", "runs": len(frame[frame["kind"] == "final"]),
+                       "failed": 0, "figures": {}}
+            Path(out).mkdir(parents=True, exist_ok=True)
+        else:
+            summary = make_report(source, out, frame, args.reference)
         if args.paper is not None:
             from pipeline.report.paper import paper_report
             beside = paper_report(frame, None if args.paper == "auto" else args.paper)
@@ -65,6 +74,9 @@ def main(argv=None) -> int:
     print(summary["tables"])
     if args.paper is not None:
         print(beside)
+    if args.paper_only:
+        print(f"written {summary['out']}/paper.md")
+        return 0
     print(f"report written to {summary['out']}/report.md ({summary['runs']} runs, {summary['failed']} failed); "
           f"figures: {', '.join(summary['figures']) or 'none'}")
     return 0
