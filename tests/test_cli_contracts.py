@@ -10,7 +10,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from pipeline.data.synthetic import generate
-from pipeline.experiment.app import CONF_DIR
+from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.build import config_hash, expand_jobs
 
 BIN = Path(sys.executable).parent

@@ -215,7 +215,7 @@ def test_load_scene_errors_name_the_folder(tmp_path):
 
 
 def test_generating_the_scene_reports_every_view_and_the_cli_prints_tenths(tmp_path, capsys):
-    from pipeline.data.cli import main as data_main
+    from pipeline.cli.data import main as data_main
     from pipeline.data.synthetic import generate
     heard = []
     generate(tmp_path / "a", size=8, n_train=3, n_test=2, progress=lambda *a: heard.append(a))

@@ -8,7 +8,7 @@ import torch
 
 from pipeline.cameras import Cameras, intrinsics_from_fov, look_at
 from pipeline.data.blender import read_blender
-from pipeline.data.cli import main as data_cli
+from pipeline.cli.data import main as data_cli
 from pipeline.data.colmap import observations, read_colmap
 from pipeline.data.images import DataError
 from pipeline.data.manifolds import (PoseListManifold, RegionManifold, SectorManifold, estimate_up,

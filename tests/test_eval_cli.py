@@ -8,7 +8,8 @@ import torch
 
 from pipeline.data.load import load_scene
 from pipeline.data.synthetic import generate
-from pipeline.eval.cli import evaluate_model, main
+from pipeline.cli.eval import main
+from pipeline.eval.model import evaluate_model
 from pipeline.splat import ply, render
 from pipeline.splat.scenes import random_scene
 

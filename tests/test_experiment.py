@@ -17,7 +17,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from tests.conftest import free_port
-from pipeline.experiment.app import CONF_DIR
+from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.records import RecordsFile, records_from_mlflow
@@ -184,7 +184,7 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
     assert folder_of_mlflow_run(summary.tracking_uri, run.info.run_id).resolve() == \
         (ray_dir / "jobs" / run.data.tags["config_hash"]).resolve()
     # the final model as a standard PLY, in MLflow and in the job folder, exportable from either
-    from pipeline.experiment.export import main as export_main
+    from pipeline.cli.export import main as export_main
     from pipeline.splat import ply
     job_dir = ray_dir / "jobs" / run.data.tags["config_hash"]
     final = ray_records.query("kind == 'final' and config_hash == @run.data.tags['config_hash']")

@@ -79,3 +79,11 @@ def test_the_fisher_walks_only_the_declared_surface_of_the_compositor():
     used = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
             and n.module == "pipeline.splat.rasterize" for a in n.names}
     assert used and used <= set(rasterize.__all__), used - set(rasterize.__all__)
+
+
+def test_nothing_imports_the_commands():
+    """pipeline/cli is the outermost room: the commands import the library, never the reverse."""
+    for path in files("."):
+        if path.parent.name == "cli":
+            continue
+        assert "cli" not in pipeline_rooms(path), f"{path} imports pipeline.cli"

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.report.cli import main as report_main
+from pipeline.cli.report import main as report_main
 from pipeline.report.paper import (Claim, judge, load_paper_tables, paper_report, rank_agreement,
                                    rows_of)
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 from hydra import compose, initialize_config_dir
 
-from pipeline.experiment.app import CONF_DIR
+from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.build import expand_jobs
 
 BIN = Path(sys.executable).parent

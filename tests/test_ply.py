@@ -66,7 +66,7 @@ def test_export_cli_from_a_checkpoint_a_job_folder_and_a_ply(tmp_path, capsys):
     from pipeline.active.checkpoint import save_checkpoint
     from pipeline.data.load import load_scene
     from pipeline.data.synthetic import generate
-    from pipeline.experiment.export import main
+    from pipeline.cli.export import main
     cfg = tiny_episode(strategy="random")
     scene = load_scene(generate(tmp_path / "scene", seed=0, size=32, n_train=8, n_test=4), width=32)
     ep = Episode(scene, cfg)
@@ -136,7 +136,7 @@ def test_spz_round_trip_keeps_the_model_to_its_quantisation(tmp_path, capsys):
     colours, smallest-three quaternions. Read back (by gsply's reader, not ours) the parameters
     are within those steps and the renders agree to well above 30 dB."""
     pytest.importorskip("gsply")
-    from pipeline.experiment.export import main
+    from pipeline.cli.export import main
     g = random_scene(400, seed=4, sh_degree=2)
     path = ply.save(g, tmp_path / "m.spz", "spz")
     assert path.stat().st_size < 0.4 * len(ply.export_bytes(g, "ply"))

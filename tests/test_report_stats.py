@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.report.cli import main as report_main
+from pipeline.cli.report import main as report_main
 from pipeline.report.stats import (bootstrap_interval, curve_area, paired_comparisons, verdict,
                                    with_curve_area)
 

@@ -52,7 +52,7 @@ def test_multirun_is_refused_with_the_one_sweep_syntax_and_help_is_ours(tmp_path
     assert "'method=[gopre,random]'" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "multirun").exists() and not (tmp_path / "o" / "jobs").exists()
     helped = subprocess.run([str(BIN / "pipeline-run"), "--help"], capture_output=True, text=True, timeout=300)
-    assert helped.returncode == 0 and helped.stdout.startswith("pipeline-run: launch one sweep")
+    assert helped.returncode == 0 and helped.stdout.startswith("gopre-run: launch one sweep")
     for needle in ("plan=true", "tracking_sync=true", "+sweep.protocol.probes", "Presets (experiment=...)",
                    "method: activenerf, cover, coverage"):
         assert needle in helped.stdout, needle

@@ -13,7 +13,7 @@ from pipeline.active.schedule import Schedule, round_view_counts, scaled_fit
 from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.data.synthetic import generate
-from pipeline.experiment.app import CONF_DIR
+from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.build import episode_config
 
 SPLAT_PRESETS = sorted(Path(p).stem for p in glob.glob(str(CONF_DIR / "splat" / "*.yaml")))

@@ -178,7 +178,7 @@ def test_a_run_without_round_models_shows_the_final_model(tiny_run, tmp_path):
 
 
 def test_bad_sources_name_what_is_missing(tiny_run, tmp_path, capsys):
-    from pipeline.view.cli import main
+    from pipeline.cli.view import main
     assert main([str(tmp_path / "nope")]) == 1
     assert "nope: no such job folder" in capsys.readouterr().err
     (tmp_path / "jobs" / "abc").mkdir(parents=True)
@@ -192,7 +192,7 @@ def test_bad_sources_name_what_is_missing(tiny_run, tmp_path, capsys):
 # -- the viewer, in process and in a browser ----------------------------------------------------
 @pytest.fixture
 def viewer(tiny_run):
-    from pipeline.view.cli import start
+    from pipeline.cli.view import start
     server, viewer = start(str(tiny_run["gopre"]), port=free_port())
     yield server, viewer
     server.stop()
@@ -366,7 +366,7 @@ def test_candidate_colours_cannot_be_confused_with_any_role_and_there_is_a_legen
 
 def test_a_sweep_folder_lists_its_jobs_and_a_moved_scene_is_found_with_data_root(tiny_run, tmp_path, capsys):
     import shutil
-    from pipeline.view.cli import main
+    from pipeline.cli.view import main
     from pipeline.view.run import load_run
     job_dir = tiny_run["gopre"]
     sweep = job_dir.parent.parent
@@ -397,7 +397,7 @@ def test_a_sweep_folder_lists_its_jobs_and_a_moved_scene_is_found_with_data_root
 def test_each_browser_tab_has_its_own_goal(tiny_run):
     """pipeline-view serves one viewer per tab: a goal scored in one tab is not in a second one."""
     playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (dev extra)")
-    from pipeline.view.cli import start
+    from pipeline.cli.view import start
     server, viewers = start(str(tiny_run["gopre"]), port=free_port(), per_client=True)
     try:
         with playwright_api.sync_playwright() as p:

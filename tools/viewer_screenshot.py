@@ -18,7 +18,7 @@ import time
 
 from playwright.sync_api import sync_playwright
 
-from pipeline.view.cli import start
+from pipeline.cli.view import start
 
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--enable-unsafe-swiftshader"]

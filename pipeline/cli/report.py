@@ -1,12 +1,12 @@
-"""``pipeline-report``: turn a sweep's records into tables and figures.
+"""``gopre-report``: turn a sweep's records into tables and figures.
 
-    pipeline-report outputs/demo                      # -> reports/demo/
-    pipeline-report outputs/table1_global --out reports/table1
-    pipeline-report outputs/science --reference fisherrf   # paired differences against fisherrf
-    pipeline-report outputs/science --seeds 0,1,2          # only complete seeds
-    pipeline-report outputs/table1_global --paper           # beside the paper's Table 1 (paper.md)
-    pipeline-report outputs/science --paper table2_goal     # the study's goal runs beside Table 2
-    pipeline-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
+    gopre-report outputs/demo                      # -> reports/demo/
+    gopre-report outputs/table1_global --out reports/table1
+    gopre-report outputs/science --reference fisherrf   # paired differences against fisherrf
+    gopre-report outputs/science --seeds 0,1,2          # only complete seeds
+    gopre-report outputs/table1_global --paper           # beside the paper's Table 1 (paper.md)
+    gopre-report outputs/science --paper table2_goal     # the study's goal runs beside Table 2
+    gopre-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
 
 Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
 """
@@ -17,11 +17,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from pipeline.cli import alias_note, command_name
 from pipeline.report.report import load_records, make_report
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="pipeline-report", description=__doc__,
+    parser = argparse.ArgumentParser(prog=command_name("report"), description=__doc__,
+                                     epilog=alias_note("report"),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", nargs="?", type=Path, help="a sweep output folder or its records.parquet")
     parser.add_argument("--out", type=Path, default=None, help="default: reports/<sweep name>")
@@ -69,7 +71,7 @@ def main(argv=None) -> int:
             beside = paper_report(frame, None if args.paper == "auto" else args.paper)
             (Path(summary["out"]) / "paper.md").write_text(beside)
     except (FileNotFoundError, ValueError) as err:
-        print(f"pipeline-report: error: {err}", file=sys.stderr)
+        print(f"{command_name('report')}: error: {err}", file=sys.stderr)
         return 1
     print(summary["tables"])
     if args.paper is not None:

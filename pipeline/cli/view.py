@@ -1,10 +1,10 @@
-"""``pipeline-view``: open an episode in the web 3D viewer.
+"""``gopre-view``: open an episode in the web 3D viewer.
 
-    pipeline-view outputs/demo/jobs/<config hash>              # http://127.0.0.1:8080
-    pipeline-view RUN_ID --mlflow-uri sqlite:///outputs/demo/mlflow.db --port 8090
-    pipeline-view outputs/demo/jobs/<hash> --host 0.0.0.0       # reachable from other machines
-    pipeline-view outputs/demo                                  # a sweep folder: lists its jobs
-    pipeline-view copied/jobs/<hash> --data-root /data          # a sweep copied from another machine
+    gopre-view outputs/demo/jobs/<config hash>              # http://127.0.0.1:8080
+    gopre-view RUN_ID --mlflow-uri sqlite:///outputs/demo/mlflow.db --port 8090
+    gopre-view outputs/demo/jobs/<hash> --host 0.0.0.0       # reachable from other machines
+    gopre-view outputs/demo                                  # a sweep folder: lists its jobs
+    gopre-view copied/jobs/<hash> --data-root /data          # a sweep copied from another machine
 
 SOURCE: a job folder (finished, or running: the rounds so far) or an MLflow run id of a job
 with ``--mlflow-uri`` (its output_dir/config_hash tags name the job folder, which must be here).
@@ -45,7 +45,8 @@ def start(source: str, mlflow_uri: str | None = None, host: str = "127.0.0.1", p
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="pipeline-view", description=__doc__,
+    parser = argparse.ArgumentParser(prog=command_name("view"), description=__doc__,
+                                     epilog=alias_note("view"),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", help="job folder outputs/<sweep>/jobs/<config hash>, or an MLflow run id")
     parser.add_argument("--mlflow-uri", help="tracking URI when SOURCE is an MLflow run id")
@@ -60,9 +61,9 @@ def main(argv=None) -> int:
         server, _viewers = start(args.source, args.mlflow_uri, args.host, args.port, args.round,
                                  args.scene, args.data_root, per_client=True)
     except (ValueError, OSError) as err:
-        print(f"pipeline-view: {err}", file=sys.stderr)  # every error names its source
+        print(f"{command_name('view')}: {err}", file=sys.stderr)  # every error names its source
         return 1
-    print(f"pipeline-view: {args.source} at http://{args.host}:{server.get_port()} (Ctrl-C stops; "
+    print(f"{command_name('view')}: {args.source} at http://{args.host}:{server.get_port()} (Ctrl-C stops; "
           "each browser tab has its own goal, round and camera)", flush=True)
     try:
         while True:

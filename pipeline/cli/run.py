@@ -1,9 +1,9 @@
-"""``pipeline-run``: the Hydra app over ``run_sweep``.
+"""``gopre-run`` (also installed as ``pipeline-run``, the old name, an alias for one release): the Hydra app over ``run_sweep``.
 
-    pipeline-run experiment=demo
-    pipeline-run experiment=table1_global data_root=/data splat=cpu executor.address=auto
-    pipeline-run experiment=science plan=true      # the job table and an estimate; starts nothing
-    pipeline-run experiment=demo tracking_sync=true  # replay runs a down tracking server missed
+    gopre-run experiment=demo
+    gopre-run experiment=table1_global data_root=/data splat=cpu executor.address=auto
+    gopre-run experiment=science plan=true      # the job table and an estimate; starts nothing
+    gopre-run experiment=demo tracking_sync=true  # replay runs a down tracking server missed
 
 The exit status is the number of failed jobs (capped at 100); 0 when every job finished; 2 on a
 config error (nothing started); 130 after Ctrl-C (SIGINT), 143 after SIGTERM: running jobs are
@@ -22,6 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.cli import command_name
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.plan import plan_jobs, plan_text, slots
@@ -51,7 +52,7 @@ register_resolvers()
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> None:
     if HydraConfig.get().mode == RunMode.MULTIRUN:
-        print("pipeline-run: config error: -m / --multirun would launch several sweeps into one output "
+        print(f"{command_name('run')}: config error: -m / --multirun would launch several sweeps into one output "
               "folder; give the values inside one sweep instead, e.g. 'method=[gopre,random]' or "
               "+sweep.protocol.probes=[5,10]", file=sys.stderr)
         sys.exit(2)
@@ -59,14 +60,14 @@ def main(cfg: DictConfig) -> None:
         try:
             jobs = expand_jobs(cfg)
         except ConfigError as err:
-            print(f"pipeline-run: config error: {err}", file=sys.stderr)
+            print(f"{command_name('run')}: config error: {err}", file=sys.stderr)
             sys.exit(2)
         try:  # the data as a real launch checks it (a scene still to be generated is not read)
             validate_sweep([j for j in jobs if not (j.get("generate") and not (
                 Path(j["scene_path"]) / "transforms_test.json").exists())],
                 bool(cfg.get("validate_images", True)))
         except ConfigError as err:
-            print(f"pipeline-run: config error: {err}", file=sys.stderr)
+            print(f"{command_name('run')}: config error: {err}", file=sys.stderr)
             sys.exit(2)
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
         print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs)))
@@ -75,14 +76,14 @@ def main(cfg: DictConfig) -> None:
         try:
             sync_tracking(cfg)
         except ConfigError as err:
-            print(f"pipeline-run: config error: {err}", file=sys.stderr)
+            print(f"{command_name('run')}: config error: {err}", file=sys.stderr)
             sys.exit(2)
         return
     install_stop_handlers()  # Ctrl-C / SIGTERM: a clean stop with exit status 128 + signal
     try:
         summary = run_sweep(cfg)
     except ConfigError as err:
-        print(f"pipeline-run: config error: {err}", file=sys.stderr)
+        print(f"{command_name('run')}: config error: {err}", file=sys.stderr)
         sys.exit(2)
     except SweepInterrupted as stop:
         sys.exit(stop.exit_status)

@@ -1,8 +1,8 @@
-"""``pipeline-data``: inspect a dataset folder, or generate the default scene.
+"""``gopre-data``: inspect a dataset folder, or generate the default scene.
 
-    pipeline-data inspect PATH [--deep]   JSON summary; exits 1 with a message naming the file on bad data
+    gopre-data inspect PATH [--deep]   JSON summary; exits 1 with a message naming the file on bad data
                                           (--deep: decode every image, as a sweep will)
-    pipeline-data generate OUT [--seed S] [--size W]
+    gopre-data generate OUT [--seed S] [--size W]
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import json
 import sys
 from pathlib import Path
 
+from pipeline.cli import alias_note, command_name
 from pipeline.data.images import DataError
 from pipeline.data.load import load_scene
 
@@ -42,7 +43,8 @@ def print_progress(split: str, done: int, total: int) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="pipeline-data", description=__doc__,
+    parser = argparse.ArgumentParser(prog=command_name("data"), description=__doc__,
+                                     epilog=alias_note("data"),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     inspect = sub.add_parser("inspect", help="print a JSON summary of a scene folder")
@@ -61,7 +63,7 @@ def main(argv=None) -> int:
             out = generate(args.out, seed=args.seed, size=args.size, progress=print_progress)
             print(json.dumps({"written": str(out), "seed": args.seed, "size": args.size}))
     except (DataError, ValueError) as err:
-        print(f"pipeline-data: error: {err}", file=sys.stderr)
+        print(f"{command_name('data')}: error: {err}", file=sys.stderr)
         return 1
     return 0
 
