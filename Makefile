@@ -18,8 +18,8 @@ env: $(STAMP)
 # The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
 # MLflow tracking, then its report in reports/demo/.
 demo: $(STAMP)
-	$(BIN)/pipeline-run experiment=demo
-	$(BIN)/pipeline-report outputs/demo --out reports/demo
+	$(BIN)/gopre-run experiment=demo
+	$(BIN)/gopre-report outputs/demo --out reports/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -53,7 +53,7 @@ def ray_session():
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_preset_composes_at_paper_scale_and_says_how_to_run_it(preset):
     text = (CONF_DIR / "experiment" / f"{preset}.yaml").read_text()
-    assert text.startswith("# @package _global_") and "pipeline-run experiment=" + preset in text
+    assert text.startswith("# @package _global_") and "gopre-run experiment=" + preset in text
     jobs = expand_jobs(composed([f"experiment={preset}", "data_root=/datasets"]))
     assert jobs and len({j["config_hash"] for j in jobs}) == len(jobs)
     if preset not in ("demo", "debug", "science", "science_ablation"):  # CPU-scale presets

@@ -18,6 +18,8 @@ import argparse
 import sys
 import time
 
+from pipeline.cli import alias_note, command_name
+
 
 def start(source: str, mlflow_uri: str | None = None, host: str = "127.0.0.1", port: int = 8080,
           start_round: int | None = None, scene: str | None = None, data_root: str | None = None,
