@@ -29,7 +29,8 @@ class _CurrentStdout(logging.StreamHandler):
         pass
 
 
-def _console() -> logging.Logger:
+def console() -> logging.Logger:
+    """The driver's logger, with its stdout handler attached (once)."""
     if not any(isinstance(h, _CurrentStdout) for h in LOG.handlers):
         handler = _CurrentStdout()
         handler.setFormatter(logging.Formatter("%(message)s"))
@@ -42,7 +43,7 @@ def _console() -> logging.Logger:
 @contextmanager
 def sweep_log(output_dir: Path):
     """Within the block, the driver's lines also go to ``output_dir/sweep.log`` (appended)."""
-    log = _console()
+    log = console()
     output_dir.mkdir(parents=True, exist_ok=True)
     handler = logging.FileHandler(output_dir / LOG_FILE, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
@@ -52,8 +53,3 @@ def sweep_log(output_dir: Path):
     finally:
         log.removeHandler(handler)
         handler.close()
-
-
-def console() -> logging.Logger:
-    """The driver's logger (stdout attached)."""
-    return _console()

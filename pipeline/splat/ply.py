@@ -80,9 +80,8 @@ def written_count(data: bytes, fmt: str) -> int:
         return len(data) // 32
     if fmt == "spz":
         import gzip
-        import struct as st
         raw = gzip.decompress(data) if data[:2] == b"\x1f\x8b" else data
-        return st.unpack_from("<I", raw, 8)[0]  # magic, version, then the point count
+        return struct.unpack_from("<I", raw, 8)[0]  # magic, version, then the point count
     head = data[:data.find(b"end_header")].decode("ascii", errors="replace")
     for line in head.splitlines():
         if line.startswith("element vertex "):
