@@ -22,8 +22,6 @@ from scipy.stats import kendalltau
 from pipeline.report.stats import MIN_PAIRS, bootstrap_interval
 
 PAPER_TABLES = Path(__file__).with_name("paper_tables.yaml")
-HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "per_candidate_ms": False,
-                    "selection_seconds": False, "peak_rss_mb": False}
 METRIC_LABELS = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "per_candidate_ms": "per-cand. ms",
                  "selection_seconds": "round s", "peak_rss_mb": "peak MB"}
 SCALE_NOTE = ("Absolute numbers differ from the paper's by design (CPU scale: 64 px, 2-5k iterations, "

@@ -9,10 +9,12 @@ report is reproducible), with the Wilcoxon signed-rank p-value beside it.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy.stats import bootstrap, wilcoxon
 
 PAIR_KEYS = ("dataset", "scene", "seed", "setting")
 BOOTSTRAP_SAMPLES = 10_000
@@ -45,19 +47,16 @@ def bootstrap_interval(values: np.ndarray, level: float = 0.95, samples: int = B
     (``scipy.stats.bootstrap``, seeded so a report is reproducible). Values that are all equal
     (or n = 1) give a zero-width interval, which the tables flag by n; if BCa is undefined for a
     sample (its jackknife is degenerate) the percentile interval is used."""
-    from scipy.stats import bootstrap
     values = np.asarray(values, dtype=float)
     if values.size == 0:
         raise ValueError("bootstrap_interval: no values")
     if values.size == 1 or np.ptp(values) == 0:
         return float(values.mean()), float(values.mean())
     for method in ("BCa", "percentile"):
-        with np.errstate(all="ignore"):
-            import warnings
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                ci = bootstrap((values,), np.mean, confidence_level=level, n_resamples=samples,
-                               method=method, random_state=np.random.default_rng(seed)).confidence_interval
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # BCa's degenerate-jackknife warning: handled below
+            ci = bootstrap((values,), np.mean, confidence_level=level, n_resamples=samples,
+                           method=method, random_state=np.random.default_rng(seed)).confidence_interval
         if np.isfinite(ci.low) and np.isfinite(ci.high):
             return float(ci.low), float(ci.high)
     return float(values.mean()), float(values.mean())
@@ -66,7 +65,6 @@ def bootstrap_interval(values: np.ndarray, level: float = 0.95, samples: int = B
 def wilcoxon_p(differences: np.ndarray) -> float | None:
     """Two-sided Wilcoxon signed-rank p-value of paired differences (zero differences dropped);
     None when no difference is non-zero."""
-    from scipy.stats import wilcoxon
     d = np.asarray(differences, dtype=float)
     d = d[np.abs(d) > TIE_DB]
     if d.size == 0:
