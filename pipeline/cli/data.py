@@ -15,6 +15,7 @@ from pathlib import Path
 from pipeline.cli import alias_note, command_name
 from pipeline.data.images import DataError
 from pipeline.data.load import load_scene
+from pipeline.data.synthetic import at_fraction
 
 
 def summary(path: Path, deep: bool = False) -> dict:
@@ -38,7 +39,7 @@ def summary(path: Path, deep: bool = False) -> dict:
 
 def print_progress(split: str, done: int, total: int) -> None:
     """One line per tenth of a split (stderr, so stdout stays the JSON summary)."""
-    if done == total or done * 10 // total > (done - 1) * 10 // total:
+    if at_fraction(done, total, 10):
         print(f"{split}: {done}/{total} views", file=sys.stderr, flush=True)
 
 

@@ -227,6 +227,12 @@ def render_view(c2w: Tensor, size: int, textures: list[Tensor]) -> np.ndarray:
     return (out.numpy() * 255 + 0.5).astype(np.uint8)
 
 
+def at_fraction(done: int, total: int, parts: int) -> bool:
+    """True when ``done`` of ``total`` views completes one of ``parts`` equal shares (and at the
+    end): how often a caller of ``generate`` says how far it is."""
+    return done == total or done * parts // total > (done - 1) * parts // total
+
+
 def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100,
              n_test: int = 200, progress: Callable[[str, int, int], None] | None = None) -> Path:
     """Write the scene in the Blender layout under ``out``; returns the folder. ``progress(split,

@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.data.load import load_scene
 from pipeline.data.protocols import build_protocol
 from pipeline.data.scene import Scene
-from pipeline.data.synthetic import generate
+from pipeline.data.synthetic import at_fraction, generate
 from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
 from pipeline.experiment.console import console, sweep_log
 from pipeline.experiment.executor import make_executor, scene_key
@@ -111,7 +111,7 @@ def save_artifacts(output_dir: Path, job: dict, outcome: dict) -> None:
 
 def every_quarter(split: str, done: int, total: int) -> None:
     """A progress line at each quarter of a split of the generated scene."""
-    if done == total or done * 4 // total > (done - 1) * 4 // total:
+    if at_fraction(done, total, 4):
         LOG.info(f"  {split}: {done}/{total} views")
 
 
