@@ -18,9 +18,9 @@ from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vecto
                                        pool_and_train_fishers, timed_selection)
 from pipeline.fisher.exact import FisherSpec
 from pipeline.fisher.features import PARAM_GROUPS
-from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score, gopre_score,
-                                       monte_carlo_score, posterior_variance, trace_score,
-                                       updated_variance)
+from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score,
+                                       gopre_score_of_fishers, monte_carlo_score,
+                                       posterior_variance, trace_score, updated_variance)
 
 SCORES = ("logdet", "trace", "mc")
 GOALS = ("probes", "identity")
@@ -61,11 +61,14 @@ class GoPreStrategy:
         goal = goal_hessian(probes) if probes is not None else None
 
         def score(h, f):
-            sx = updated_variance(posterior_variance(h, self.lam), f)
-            m = torch.ones_like(sx[0]) if goal is None else goal
+            s = posterior_variance(h, self.lam)
+            m = torch.ones_like(s) if goal is None else goal
+            if tau > 0 and self.score == "logdet":
+                return gopre_score_of_fishers(s, f, m, tau)
+            sx = updated_variance(s, f)
             if tau == 0:
                 return gopre_limit_score(sx, m)
-            return (gopre_score if self.score == "logdet" else trace_score)(sx, m, tau)
+            return trace_score(sx, m, tau)
         return score
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:

@@ -17,10 +17,9 @@ from pathlib import Path
 import torch
 
 from pipeline.active import episode_preset, run_episode
-from pipeline.bench.measure import machine_load
+from pipeline.bench.measure import BACKEND_VARIANTS, backend_variant, machine_load
 from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolConfig
-from pipeline.splat.compiled import auto_backend
 
 
 def main(argv=None) -> list[dict]:
@@ -33,16 +32,25 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--checkpoint", type=Path, default=None, help="resume folder")
     parser.add_argument("--progress", action="store_true")
-    parser.add_argument("--backends", nargs="+", default=["compiled"], choices=["tiles", "compiled"],
-                        help="run the episode once per backend (add tiles for speedup_vs_torch)")
+    parser.add_argument("--backends", nargs="+", default=["compiled"], choices=BACKEND_VARIANTS,
+                        help="run the episode once per backend (add tiles for speedup_vs_torch; "
+                             "compiled-unfused: the compiled path without its fused paths, the "
+                             "before of a before/after, with same_as_first saying whether the "
+                             "picks and the final PSNR agree)")
     args = parser.parse_args(argv)
     rows, torch_wall = [], None
     for backend in args.backends:
-        with auto_backend(backend):
+        with backend_variant(backend):
             row = run_one(args, backend)
         if backend == "tiles":
             torch_wall = row["wall_s"]
         row["speedup_vs_torch"] = round(torch_wall / row["wall_s"], 2) if torch_wall else None
+        if rows:
+            first = rows[0]
+            row["speedup_vs_first"] = round(first["wall_s"] / row["wall_s"], 2)
+            row["same_as_first"] = {"picks": row["selected"] == first["selected"],
+                                    "final_psnr_diff_db": round(row["final_psnr_full"]
+                                                                - first["final_psnr_full"], 6)}
         print(json.dumps(row), flush=True)
         rows.append(row)
     return rows
@@ -60,11 +68,12 @@ def run_one(args, backend: str) -> dict:
     return {"scene": str(args.scene), "strategy": args.strategy, "backend": backend,
             "preset": args.preset, "protocol": args.protocol, "seed": args.seed,
             "wall_s": round(time.perf_counter() - start, 1),
-            "final_psnr": round(result.final["psnr"], 3), "final_ssim": round(result.final["ssim"], 4),
+            "final_psnr": round(result.final["psnr"], 3), "final_psnr_full": result.final["psnr"], "final_ssim": round(result.final["ssim"], 4),
             "final_lpips": result.final["lpips"], "lpips_status": result.final["lpips_status"],
             "selected": result.selected, "initial": result.initial,
             "curve": [[r.num_views, round(r.test_psnr, 3)] for r in result.rounds],
             "selection_s": [r.selection_seconds for r in result.rounds[:-1]],
+            "selection_total_s": round(sum(r.selection_seconds for r in result.rounds), 1),
             "train_s": round(sum(r.train_seconds for r in result.rounds), 1),
             "num_gaussians": result.final["num_gaussians"], "threads": torch.get_num_threads(),
             "load_avg_1m": round(machine_load(), 2)}

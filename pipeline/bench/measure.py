@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import os
+from contextlib import contextmanager
 import statistics
 import time
 from typing import Callable
@@ -35,3 +38,18 @@ def available_memory_mb() -> float:
 
 def machine_load() -> float:
     return os.getloadavg()[0]
+
+
+BACKEND_VARIANTS = ("tiles", "compiled-unfused", "compiled")
+
+
+@contextmanager
+def backend_variant(name: str):
+    """Within the block ``auto`` resolves to the variant's backend: ``tiles`` (the torch path),
+    ``compiled`` (the production path, fused paths on) or ``compiled-unfused`` (the compiled ops
+    without the fused paths: the production path before them), for before/after in one process."""
+    from pipeline.splat.compiled import auto_backend, fused_paths
+    if name not in BACKEND_VARIANTS:
+        raise ValueError(f"backend variant must be one of {BACKEND_VARIANTS}, got {name!r}")
+    with auto_backend(name.removesuffix("-unfused")), fused_paths(name != "compiled-unfused"):
+        yield

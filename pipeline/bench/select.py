@@ -15,9 +15,9 @@ import time
 import torch
 
 from pipeline.acquisition import SelectionContext, make_strategy
-from pipeline.bench.measure import machine_load, peak_rss_mb, reset_peak_rss
+from pipeline.bench.measure import (BACKEND_VARIANTS, backend_variant, machine_load, peak_rss_mb,
+                                    reset_peak_rss)
 from pipeline.fisher.exact import FisherSpec, view_fisher
-from pipeline.splat.compiled import auto_backend
 from pipeline.splat.scenes import random_scene, sphere_cameras
 
 STRATEGIES = ("random", "coverage", "fisherrf", "popgs", "gopre")
@@ -32,8 +32,9 @@ def main(argv=None) -> None:
     parser.add_argument("--probes", type=int, default=25)
     parser.add_argument("--strategies", nargs="+", default=list(STRATEGIES))
     parser.add_argument("--backends", nargs="+", default=["tiles", "compiled"],
-                        choices=["tiles", "compiled"],
-                        help="each strategy's round is run on each; speedup_vs_torch compares them")
+                        choices=BACKEND_VARIANTS,
+                        help="each strategy's round is run on each; speedup_vs_torch compares them "
+                             "(compiled-unfused: the compiled path without its fused paths)")
     args = parser.parse_args(argv)
     g = random_scene(args.gaussians, seed=0)
     pool = sphere_cameras(args.candidates, args.size, args.size, seed=1)
@@ -41,7 +42,7 @@ def main(argv=None) -> None:
     probes = sphere_cameras(args.probes, args.size, args.size, seed=3)
     torch_round = {}
     for backend in args.backends:
-        with auto_backend(backend):
+        with backend_variant(backend):
             start = time.perf_counter()
             view_fisher(g, pool, torch.ones(3), FisherSpec())
             bare = (time.perf_counter() - start) / args.candidates

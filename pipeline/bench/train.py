@@ -15,7 +15,8 @@ import time
 
 import torch
 
-from pipeline.bench.measure import machine_load, peak_rss_mb, reset_peak_rss
+from pipeline.bench.measure import (BACKEND_VARIANTS, backend_variant, machine_load, peak_rss_mb,
+                                    reset_peak_rss)
 from pipeline.fit.config import cpu_preset
 from pipeline.fit.trainer import Trainer
 from pipeline.splat import RenderSettings, render
@@ -56,14 +57,17 @@ def main(argv=None) -> None:
     parser.add_argument("--gaussians", type=int, default=10000)
     parser.add_argument("--steps", type=int, default=20, help="iterations per timed block")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--backends", nargs="+", default=["tiles", "compiled"],
-                        choices=["tiles", "compiled"])
+    parser.add_argument("--backends", nargs="+", default=["tiles", "compiled-unfused", "compiled"],
+                        choices=BACKEND_VARIANTS,
+                        help="compiled-unfused: the compiled ops without the fused training "
+                             "render (the path before it), for a before/after in one process")
     args = parser.parse_args(argv)
     rates = {}
     for backend in args.backends:
         reset_peak_rss()
-        rates[backend] = (iterations_per_second(backend, args.size, args.gaussians, args.steps,
-                                                args.repeats), peak_rss_mb())
+        with backend_variant(backend):
+            rate = iterations_per_second("auto", args.size, args.gaussians, args.steps, args.repeats)
+        rates[backend] = (rate, peak_rss_mb())
     for backend, (rate, peak) in rates.items():
         print(json.dumps({"backend": backend, "width": args.size, "n_gaussians": args.gaussians,
                           "its_per_s": round(rate, 2),

@@ -19,14 +19,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.fisher.features import (PARAM_GROUPS, FeatureJacobian, feature_jacobian,
-                                      feature_jacobian_compiled)
+                                      feature_jacobian_compiled, param_layout)
 from pipeline.splat import Gaussians, RenderSettings, compiled
-from pipeline.splat.project import project
+from pipeline.splat.project import active_sh_degree, project
 from pipeline.splat.rasterize import (bin_gaussians, composite_forward, intersection_coeffs,
                                       local_means, outside_image, tile_monomials, untile)
 
@@ -439,11 +440,59 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
     """
     if len(cameras) == 0:
         raise ValueError("view_fisher: no cameras (the Fisher of no view is not defined here)")
+    if fisher_backend(settings, gaussians.means.device).name == "compiled" and compiled.fused_enabled():
+        return view_fisher_fused(gaussians, cameras, background, spec, settings)
     out = None
     for c, factors in enumerate(view_factors(gaussians, cameras, background, spec, settings)):
         if out is None:  # one [C, N, P] block, each view written in place (no per-view copy)
             out = factors.feature_fisher.new_zeros(len(cameras), len(gaussians), factors.width)
         factors.write_fisher_diagonal(out[c])
+    return out
+
+
+def view_fisher_fused(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
+                      spec: FisherSpec = FisherSpec(),
+                      settings: RenderSettings = RenderSettings()) -> Tensor:
+    """``view_fisher`` on the compiled backend with its tail fused (``diagonal_kernels``): per
+    view, projection, walk and Fisher rows as ``feature_fisher_compiled``, then the rows summed per
+    Gaussian and diag(A^T G A) written by one kernel into the view's [N, P] block. [C, N, P]."""
+    from pipeline.fisher import diagonal_kernels
+    if len(gaussians) == 0:
+        raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
+    gaussians.validate()
+    kernels = compiled.load()
+    layout = param_layout(gaussians, spec.groups)
+    groups = np.array([any(g == name for g, _ in layout) for name in PARAM_GROUPS])
+    cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
+    bg = gaussians.means.new_zeros(3) if background is None else background
+    g = gaussians.detach()
+    degree = active_sh_degree(g, spec.sh_degree)
+    arrays = [compiled.to_numpy(v) for v in g.params().values()]
+    out = torch.zeros(len(cams), len(g), sum(w for _, w in layout), dtype=torch.float64)
+    workers = compiled.use_threads()
+    for c in range(len(cams)):
+        with torch.no_grad():
+            proj = compiled.project_compiled(g, cams.viewmats[c], cams.Ks[c], cams.width,
+                                             cams.height, spec.sh_degree, settings.near)
+        bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
+                                     proj.depths, cams.width, cams.height, settings.tile_size)
+        colors = compiled.to_numpy(proj.colors)
+        # the walk alone (final transmittance, walked lengths): no feature channel to composite
+        _, final, walked = bins.forward(np.empty((len(g), 0), dtype=colors.dtype), workers)
+        row_start, row_ids = bins.walked_rows(walked)
+        rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
+                                   bins.packed, colors, final, walked,
+                                   compiled.to_numpy(bg.double()), bins.tiles_x, settings.tile_size,
+                                   spec.channel_summed, workers)
+        sums = kernels.sum_rows(row_ids, rows, len(g), rows)
+        seen = np.zeros(len(g), dtype=np.bool_)
+        seen[row_ids] = True
+        K = cams.Ks[c]
+        intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+        diagonal_kernels.fisher_diagonal(
+            sums, seen, *arrays, compiled.to_numpy(cams.viewmats[c].double()), intr,
+            int(cams.width), int(cams.height), int(degree), float(settings.near), groups,
+            spec.channel_summed, out[c].numpy(), workers)
     return out
 
 

@@ -57,6 +57,16 @@ def gopre_score(sx: Tensor, goal: Tensor, tau: float = 1.0) -> Tensor:
     return torch.log1p(sx * goal.double() / tau ** 2).sum(-1)
 
 
+def gopre_score_of_fishers(s: Tensor, fisher_x: Tensor, goal: Tensor, tau: float = 1.0) -> Tensor:
+    """``gopre_score(updated_variance(s, fisher_x), goal, tau)`` with one [..., D] temporary
+    instead of five (the same operations in the same order, in place): S [D], F_x [..., D]."""
+    t = fisher_x.double() + 1.0 / s
+    t.reciprocal_().mul_(goal.double())
+    if tau != 1.0:
+        t.div_(tau ** 2)
+    return t.log1p_().sum(-1)
+
+
 def gopre_limit_score(sx: Tensor, goal: Tensor) -> Tensor:
     """The tau -> 0 limit of ``gopre_score`` up to candidate-independent terms:
     sum over {i : M_i > 0} of log Sx_i, [..., D] -> [...]; lower is better. M's values do not

@@ -25,6 +25,7 @@ from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
 from pipeline.fit.losses import photometric_loss, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
 from pipeline.splat.gaussians import all_finite
+from pipeline.splat.training_view import training_view_renderer
 
 
 NONFINITE_STEP_LIMIT = 10
@@ -157,11 +158,10 @@ class Trainer:
                 group["lr"] = self._means_lr()
         view = self._next_view()
         cams, target = self.cameras[view], self.images[view]
-        out = render(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
-                     self.settings)
-        means2d = out.means2d[0]
-        means2d.retain_grad()
-        image = out.rgb[0]
+        renderer = training_view_renderer(self.settings, self.background.device)
+        out = renderer(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
+                       self.settings)
+        image = out.image
         loss = photometric_loss(image, target, cfg.ssim_weight)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -170,7 +170,7 @@ class Trainer:
             self._density_control()  # keeps periodic events on their schedule
             return StepInfo(self.step, float("nan"), float("nan"), self.params["means"].shape[0])
         if self.step < dcfg.stop:
-            self.stats.update(means2d.grad.detach(), out.radii[0], cams.width, cams.height)
+            self.stats.update(out.means2d_grad(), out.radii, cams.width, cams.height)
         self.optimizer.step()
         self._density_control()
         return StepInfo(self.step, float(loss.detach()), float(psnr(image.detach(), target)),

@@ -78,6 +78,24 @@ def auto_backend(name: str):
         _STATE["auto"] = before
 
 
+@contextmanager
+def fused_paths(enabled: bool):
+    """Within the block, the fused compiled paths (the training step's one-node render, the
+    Fisher's per-view diagonal and the compiled scores) are used when ``enabled`` (the default
+    outside any block), else the unfused compiled ops they replace: how ``bench episode`` times
+    both in one process and how the tests compare them."""
+    before = _STATE.get("fused", True)
+    _STATE["fused"] = bool(enabled)
+    try:
+        yield
+    finally:
+        _STATE["fused"] = before
+
+
+def fused_enabled() -> bool:
+    return _STATE.get("fused", True)
+
+
 def resolve_backend(backend: str, device: torch.device) -> str:
     """``auto`` -> ``compiled`` for CPU tensors when it loads, else ``tiles`` (one warning when the
     compiled path was wanted on CPU but cannot load). ``compiled`` on a non-CPU device or without
@@ -121,9 +139,13 @@ def to_numpy(x: Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
 
+def _array(x) -> np.ndarray:
+    return x if isinstance(x, np.ndarray) else to_numpy(x)
+
+
 class CompiledBins:
     """Depth-sorted per-tile lists built by the compiled counting sort (NumPy arrays), with the
-    packed per-Gaussian rows the kernels read.
+    packed per-Gaussian rows the kernels read. Built from CPU tensors or NumPy arrays.
 
     gauss_ids [I], offsets [T], counts [T] (same meaning as ``rasterize.TileBins``);
     packed [N, 8] float64 (see ``kernels``).
@@ -134,11 +156,11 @@ class CompiledBins:
         kernels = load()
         self.width, self.height, self.tile_size = width, height, tile_size
         self.tiles_x, self.tiles_y = -(-width // tile_size), -(-height // tile_size)
-        self.packed = kernels.pack(to_numpy(means2d), to_numpy(conics), to_numpy(opacities))
-        rects = kernels.alpha_tile_rects(self.packed, to_numpy(radii).astype(np.int64), self.tiles_x,
-                                   self.tiles_y, tile_size)
+        self.packed = kernels.pack(_array(means2d), _array(conics), _array(opacities))
+        rects = kernels.alpha_tile_rects(self.packed, _array(radii).astype(np.int64), self.tiles_x,
+                                         self.tiles_y, tile_size)
         self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(
-            rects, kernels.depth_order(to_numpy(depths)), self.tiles_x, self.tiles_y)
+            rects, kernels.depth_order(_array(depths)), self.tiles_x, self.tiles_y)
 
     def forward(self, features: np.ndarray, workers: int):
         """(image [H, W, D] in the features' dtype, final transmittance [H, W] float64,

@@ -325,7 +325,7 @@ def _chain(g, k0, k1, k2, gu, gv, g_depth, gdx, gdy, gdz, log_scales, view, intr
 
 
 @njit(cache=True)
-def _chain_scratch():
+def chain_scratch():
     """Per-block scratch of the backward chain: jac, rs, m, qn, rot, d, unit, basis, bx, by, bz
     (SH basis and its gradient), gm, gj, grs, gr (the chain's intermediate gradients)."""
     return (np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3)), np.empty(4), np.empty((3, 3)),
@@ -333,14 +333,41 @@ def _chain_scratch():
             np.empty((2, 3)), np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 3)))
 
 
+@njit(cache=True, inline="always")
+def _no_upstream(g, g_means2d, g_conics, g_depths, g_colors, g_opac):
+    """True when every upstream gradient of Gaussian g is zero (culled, or reached no pixel
+    that the loss sees): the backward is linear in them, so its gradients are exactly zero."""
+    return (g_means2d[g, 0] == 0.0 and g_means2d[g, 1] == 0.0 and g_conics[g, 0] == 0.0
+            and g_conics[g, 1] == 0.0 and g_conics[g, 2] == 0.0 and g_depths[g] == 0.0
+            and g_colors[g, 0] == 0.0 and g_colors[g, 1] == 0.0 and g_colors[g, 2] == 0.0
+            and g_opac[g] == 0.0)
+
+
+@njit(cache=True, inline="always")
+def _zero_gradients(g, d_means, d_ls, d_q, d_logit, d_sh0, d_shn):
+    for i in range(3):
+        d_means[g, i] = 0.0
+        d_ls[g, i] = 0.0
+        d_sh0[g, 0, i] = 0.0
+    for i in range(4):
+        d_q[g, i] = 0.0
+    d_logit[g] = 0.0
+    for k in range(d_shn.shape[1]):
+        for i in range(3):
+            d_shn[g, k, i] = 0.0
+
+
 @njit(cache=True, error_model="numpy")
 def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                     height, sh_degree, near, g_means2d, g_conics, g_depths, g_colors, g_opac,
                     d_means, d_ls, d_q, d_logit, d_sh0, d_shn):
     bases = (sh_degree + 1) ** 2
-    jac, rs, m, qn, rot, d, unit, basis, bx, by, bz, gm, gj, grs, gr = _chain_scratch()
+    jac, rs, m, qn, rot, d, unit, basis, bx, by, bz, gm, gj, grs, gr = chain_scratch()
     out = np.empty(10)
     for g in range(lo, hi):
+        if _no_upstream(g, g_means2d, g_conics, g_depths, g_colors, g_opac):
+            _zero_gradients(g, d_means, d_ls, d_q, d_logit, d_sh0, d_shn)
+            continue
         geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m,
                         qn, rot)
         o = 1.0 / (1.0 + math.exp(-logit_opacities[g]))  # opacity = sigmoid(logit)
@@ -376,45 +403,56 @@ def _backward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn,
 
 
 @njit(cache=True, error_model="numpy")
+def jacobian_one(g, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
+                 sh_degree, near, scratch, geometry, sh_slope):
+    """Gaussian g's feature Jacobian: fills geometry [8, 10] (every entry) and sh_slope [K, 3]
+    (live entries only: the caller zeroes it), returns d opacity / d logit. ``scratch`` is
+    ``chain_scratch()``."""
+    bases = (sh_degree + 1) ** 2
+    jac, rs, m, qn, rot, d, unit, basis, bx, by, bz, gm, gj, grs, gr = scratch
+    geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m, qn, rot)
+    o = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
+    dn = _direction(g, means, view, d)
+    for i in range(3):
+        unit[i] = d[i] / dn
+    _sh_basis(sh_degree, unit[0], unit[1], unit[2], basis)
+    _sh_basis_grad(sh_degree, unit[0], unit[1], unit[2], bx, by, bz)
+    # rows u, v, conic a, b, c: one-hot upstream gradients
+    _chain(g, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac, rs,
+           m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[0])
+    _chain(g, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac, rs,
+           m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[1])
+    for r in range(3):
+        k0, k1, k2 = 1.0 if r == 0 else 0.0, 1.0 if r == 1 else 0.0, 1.0 if r == 2 else 0.0
+        _chain(g, k0, k1, k2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac,
+               rs, m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[2 + r])
+    # colour rows: the view direction moves with the mean; the SH slopes are the basis
+    for ch in range(3):
+        gdx, gdy, gdz = 0.0, 0.0, 0.0
+        if _colour_is_live(g, sh0, shn, bases, basis, ch):
+            for k in range(1, bases):
+                gdx += shn[g, k - 1, ch] * bx[k]
+                gdy += shn[g, k - 1, ch] * by[k]
+                gdz += shn[g, k - 1, ch] * bz[k]
+        _chain(g, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, gdx, gdy, gdz, log_scales, view, intr, geo, jac,
+               rs, m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[5 + ch])
+        acc = basis[0] * sh0[g, 0, ch]
+        for k in range(1, bases):
+            acc += basis[k] * shn[g, k - 1, ch]
+        if acc + 0.5 > 0.0:  # the colour is strictly positive: not clamped
+            for k in range(bases):
+                sh_slope[k, ch] = basis[k]
+    return o * (1.0 - o)
+
+
+@njit(cache=True, error_model="numpy")
 def _jacobian_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                     height, sh_degree, near, geometry, sh_slope, opacity_slope):
-    bases = (sh_degree + 1) ** 2
-    jac, rs, m, qn, rot, d, unit, basis, bx, by, bz, gm, gj, grs, gr = _chain_scratch()
+    scratch = chain_scratch()
     for g in range(lo, hi):
-        geo = _geometry(g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m,
-                        qn, rot)
-        o = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
-        opacity_slope[g] = o * (1.0 - o)
-        dn = _direction(g, means, view, d)
-        for i in range(3):
-            unit[i] = d[i] / dn
-        _sh_basis(sh_degree, unit[0], unit[1], unit[2], basis)
-        _sh_basis_grad(sh_degree, unit[0], unit[1], unit[2], bx, by, bz)
-        # rows u, v, conic a, b, c: one-hot upstream gradients
-        _chain(g, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac, rs,
-               m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 0])
-        _chain(g, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac, rs,
-               m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 1])
-        for r in range(3):
-            k0, k1, k2 = 1.0 if r == 0 else 0.0, 1.0 if r == 1 else 0.0, 1.0 if r == 2 else 0.0
-            _chain(g, k0, k1, k2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, log_scales, view, intr, geo, jac,
-                   rs, m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 2 + r])
-        # colour rows: the view direction moves with the mean; the SH slopes are the basis
-        for ch in range(3):
-            gdx, gdy, gdz = 0.0, 0.0, 0.0
-            if _colour_is_live(g, sh0, shn, bases, basis, ch):
-                for k in range(1, bases):
-                    gdx += shn[g, k - 1, ch] * bx[k]
-                    gdy += shn[g, k - 1, ch] * by[k]
-                    gdz += shn[g, k - 1, ch] * bz[k]
-            _chain(g, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, gdx, gdy, gdz, log_scales, view, intr, geo, jac,
-                   rs, m, qn, rot, unit, dn, gm, gj, grs, gr, geometry[g, 5 + ch])
-            acc = basis[0] * sh0[g, 0, ch]
-            for k in range(1, bases):
-                acc += basis[k] * shn[g, k - 1, ch]
-            if acc + 0.5 > 0.0:  # the colour is strictly positive: not clamped
-                for k in range(bases):
-                    sh_slope[g, k, ch] = basis[k]
+        opacity_slope[g] = jacobian_one(g, means, log_scales, quats, logit_opacities, sh0, shn,
+                                        view, intr, width, height, sh_degree, near, scratch,
+                                        geometry[g], sh_slope[g])
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)

@@ -1,0 +1,165 @@
+"""The fused compiled paths (issue 27's episode speedup) against the ops they replace and against
+oracles that share no code with them: the training step's one-node render, the projection
+backward's skip of Gaussians without upstream gradient, the per-view Fisher diagonal kernel and
+the in-place GO-PRE score."""
+
+import pytest
+import torch
+
+from pipeline.cameras import Cameras
+from pipeline.fisher.exact import FisherSpec, view_fisher
+from pipeline.fisher.features import PARAM_GROUPS
+from pipeline.fisher.posterior import (gopre_score, gopre_score_of_fishers, posterior_variance,
+                                       updated_variance)
+from pipeline.fit.config import FitConfig, DensifyConfig
+from pipeline.fit.losses import photometric_loss
+from pipeline.fit.trainer import Trainer
+from pipeline.splat import Gaussians, RenderSettings, compiled, render
+from pipeline.splat.compiled import fused_paths
+from pipeline.splat.project import project
+from pipeline.splat.scenes import orbit_cameras, random_scene
+from pipeline.splat.training_view import (training_view_compiled, training_view_generic,
+                                          training_view_renderer)
+from tests.test_compiled import with_hard_cases
+
+pytestmark = pytest.mark.skipif(compiled.load() is None,
+                                reason=f"compiled backend unavailable: {compiled.load_error()}")
+
+F64 = torch.float64
+
+
+def rel(a, b):
+    return ((a - b).norm() / b.norm().clamp_min(1e-300)).item()
+
+
+def view_and_grads(fn, g, cam, background, sh_degree, backend, target):
+    leaves = g.clone().requires_grad_()
+    out = fn(leaves, cam, background, sh_degree, RenderSettings(backend=backend, tile_size=8))
+    photometric_loss(out.image, target, 0.2).backward()
+    return out, {k: v.grad for k, v in leaves.params().items()}
+
+
+@pytest.mark.parametrize("dtype,sh_degree,background", [
+    (F64, 3, (0.2, 0.5, 0.9)),
+    (F64, 1, (0.0, 0.0, 0.0)),
+    (torch.float32, 3, (1.0, 1.0, 1.0)),
+])
+def test_fused_training_view_equals_render_and_the_dense_oracle(dtype, sh_degree, background):
+    """Image, radii, the means2d gradient and every raw gradient: the fused node against
+    ``render`` on the compiled backend (the same casts: equal to rounding) and against the dense
+    per-pixel oracle (no shared code), with Gaussians behind the camera, off-screen and clamped."""
+    cams = orbit_cameras(2, 40, 33, dtype=dtype, radius=2.6)
+    g = with_hard_cases(random_scene(300, seed=3, sh_degree=3, dtype=dtype,
+                                     opacity_range=(0.3, 0.999)), cams)
+    cam, bg = cams[0], torch.tensor(background, dtype=dtype)
+    target = torch.rand(33, 40, 3, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    fused, fused_grads = view_and_grads(training_view_compiled, g, cam, bg, sh_degree, "compiled",
+                                        target)
+    tol = 1e-12 if dtype == F64 else 1e-6
+    for backend, bound in (("compiled", tol), ("dense", 1e-10 if dtype == F64 else 1e-4)):
+        ref, ref_grads = view_and_grads(training_view_generic, g, cam, bg, sh_degree, backend,
+                                        target)
+        assert rel(fused.image, ref.image) < bound, backend
+        assert torch.equal(fused.radii, ref.radii), backend
+        assert rel(fused.means2d_grad(), ref.means2d_grad()) < bound * 10, backend
+        for name, grad in ref_grads.items():
+            if name == "shN" and sh_degree == 0:
+                continue
+            assert grad.norm() > 0, name
+            assert rel(fused_grads[name], grad) < bound * 10, f"{name} vs {backend}"
+    assert fused.image.dtype == dtype and fused_grads["means"].dtype == dtype
+
+
+def test_the_trainer_takes_the_fused_node_on_the_compiled_backend_only():
+    cpu = torch.device("cpu")
+    assert training_view_renderer(RenderSettings(backend="compiled"), cpu) is training_view_compiled
+    assert training_view_renderer(RenderSettings(backend="tiles"), cpu) is training_view_generic
+    with fused_paths(False):
+        assert training_view_renderer(RenderSettings(backend="compiled"), cpu) is \
+            training_view_generic
+
+
+def test_fused_and_unfused_training_agree_through_densification():
+    """60 steps with densification every 10 from step 20: the same Gaussians and parameters."""
+    cams = orbit_cameras(4, 24, 20)
+    with torch.no_grad():
+        images = render(random_scene(400, seed=1), cams,
+                        settings=RenderSettings(backend="tiles")).rgb.clamp(0, 1)
+    config = FitConfig(iterations=60, sh_degree=1, sh_degree_interval=20,
+                       densify=DensifyConfig(start=20, stop=50, interval=10, grad_threshold=1e-5,
+                                             prune_large_after=40, opacity_reset_interval=30))
+    results = []
+    for fused in (False, True):
+        with fused_paths(fused):
+            trainer = Trainer(random_scene(150, seed=0, sh_degree=1), cams, images, config,
+                              render_settings=RenderSettings(backend="compiled"))
+            trainer.train(60)
+        results.append(trainer.gaussians)
+    unfused, fused = results
+    assert len(unfused) == len(fused) != 150  # densification changed the count, equally
+    for name in PARAM_GROUPS:
+        assert rel(getattr(fused, name), getattr(unfused, name)) < 1e-5, name
+
+
+@pytest.mark.parametrize("output", ["means2d", "conics", "depths", "colors", "opacities"])
+def test_projection_backward_of_each_upstream_alone(output):
+    """The compiled backward skips a Gaussian only when every upstream gradient is zero: one
+    output's gradient at a time (the others zero) must still reach the parameters as autograd
+    through the torch projection says."""
+    cams = orbit_cameras(1, 40, 30, dtype=F64, radius=2.5)
+    g = with_hard_cases(random_scene(60, seed=2, sh_degree=2, dtype=F64), cams)
+    grads = {}
+    for name, fn in (("torch", project), ("compiled", compiled.project_compiled)):
+        leaves = g.clone().requires_grad_()
+        proj = fn(leaves, cams.viewmats[0], cams.Ks[0], 40, 30, None)
+        x = getattr(proj, output)
+        weights = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
+        grads[name] = torch.autograd.grad((x * weights).sum(), list(leaves.params().values()),
+                                          allow_unused=True)
+    for pname, a, b in zip(g.params(), grads["compiled"], grads["torch"]):
+        b = torch.zeros_like(a) if b is None else b
+        assert rel(a, b) < 1e-10 or (a.abs().max() == 0 and b.abs().max() == 0), pname
+    assert any(b is not None and b.abs().max() > 0 for b in grads["torch"])
+
+
+SPECS = [FisherSpec(), FisherSpec(sh_degree=1),
+         FisherSpec(groups=("means", "log_scales", "logit_opacities", "sh0", "shN"),
+                    hessian="fisherrf_released"),
+         FisherSpec(groups=("means", "quats", "sh0"))]
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=["exact", "sh1", "fisherrf_released", "subset"])
+def test_fused_fisher_diagonal_equals_the_unfused_and_the_torch_walk(spec):
+    cams = orbit_cameras(3, 30, 26, dtype=F64, radius=2.5)
+    g = with_hard_cases(random_scene(200, seed=4, sh_degree=3, dtype=F64,
+                                     opacity_range=(0.3, 0.999)), cams)
+    bg = torch.tensor([0.3, 0.6, 0.9], dtype=F64)
+    fused = view_fisher(g, cams, bg, spec, RenderSettings(backend="compiled"))
+    with fused_paths(False):
+        unfused = view_fisher(g, cams, bg, spec, RenderSettings(backend="compiled"))
+    torch_walk = view_fisher(g, cams, bg, spec, RenderSettings(backend="tiles"))
+    assert fused.shape == unfused.shape == torch_walk.shape
+    for c in range(len(cams)):
+        assert rel(fused[c], unfused[c]) < 1e-8, c
+        assert rel(fused[c], torch_walk[c]) < 1e-8, c
+        col = 0
+        for group, width in ((gr, w) for gr, w in zip(PARAM_GROUPS, (3, 3, 4, 1, 3, 45))
+                             if gr in spec.groups):
+            block = slice(col, col + width)
+            assert rel(fused[c][:, block], torch_walk[c][:, block]) < 1e-8, group
+            col += width
+    unseen = torch_walk.abs().sum((0, 2)) == 0
+    assert unseen.any() and (fused[:, unseen] == 0).all()
+
+
+@pytest.mark.parametrize("tau", [1.0, 0.3])
+def test_in_place_gopre_score_is_the_composed_score(tau):
+    gen = torch.Generator().manual_seed(0)
+    h = torch.rand(500, generator=gen, dtype=F64) * 5
+    fishers = torch.rand(7, 500, generator=gen, dtype=F64) * (torch.rand(7, 500, generator=gen) > 0.4)
+    goal = torch.rand(500, generator=gen, dtype=F64)
+    s = posterior_variance(h)
+    composed = gopre_score(updated_variance(s, fishers), goal, tau)
+    before = fishers.clone()
+    assert torch.equal(gopre_score_of_fishers(s, fishers, goal, tau), composed)
+    assert torch.equal(fishers, before)  # the candidates' Fishers are not written to
