@@ -245,3 +245,23 @@ def test_the_latex_tables_compile_with_pdflatex_without_overfull_lines(records, 
 def records_path(frame, tmp_path):
     frame.to_parquet(tmp_path / "records.parquet")
     return tmp_path / "records.parquet"
+
+
+def test_several_sweeps_are_reported_as_one_table_and_a_twice_run_episode_is_refused(tmp_path):
+    from pipeline.report.report import combine_records
+    study = pd.DataFrame([{**final_row(m, "blender", "lego", s, p + s, 0.9), "sweep": "study",
+                           "job_index": i} for i, (m, p, s) in
+                          enumerate([("gopre", 25.0, 0), ("random", 21.0, 0), ("gopre", 25.0, 1)])])
+    extra = pd.DataFrame([{**final_row("cover", "blender", "lego", 0, 24.0, 0.9), "sweep": "preset",
+                           "job_index": 0}])
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    combined = combine_records([records_path(study, tmp_path / "a"),
+                                records_path(extra, tmp_path / "b")])
+    assert list(combined["method"]) == ["gopre", "random", "gopre", "cover"]  # sweep by sweep
+    table = build_table(combined[combined["kind"] == "final"], "t", "method", None, ["psnr"])
+    assert table.rows == ["gopre", "random", "cover"]
+    twice = pd.DataFrame([{**final_row("random", "blender", "lego", 0, 20.0, 0.9),
+                           "sweep": "again", "job_index": 0}])
+    (tmp_path / "c").mkdir()
+    with pytest.raises(ValueError, match=r"method=random.*finished in more than one.*'again', 'study'"):
+        combine_records([records_path(study, tmp_path / "a"), records_path(twice, tmp_path / "c")])

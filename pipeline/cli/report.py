@@ -6,6 +6,8 @@
     gopre-report outputs/science --seeds 0,1,2          # only complete seeds
     gopre-report outputs/table1_global --paper           # beside the paper's Table 1 (paper.md)
     gopre-report outputs/science --paper table2_goal     # the study's goal runs beside Table 2
+    gopre-report outputs/science outputs/table1_global --paper table1_global --out reports/t1
+                                                         # several sweeps as one table
     gopre-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
 
 Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
@@ -18,14 +20,16 @@ import sys
 from pathlib import Path
 
 from pipeline.cli import alias_note, command_name
-from pipeline.report.report import load_records, make_report
+from pipeline.report.report import combine_records, make_report
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=command_name("report"), description=__doc__,
                                      epilog=alias_note("report"),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("source", nargs="?", type=Path, help="a sweep output folder or its records.parquet")
+    parser.add_argument("source", nargs="*", type=Path,
+                        help="a sweep output folder or its records.parquet; several are reported "
+                             "as one table (an episode finished in two of them is an error)")
     parser.add_argument("--out", type=Path, default=None, help="default: reports/<sweep name>")
     parser.add_argument("--mlflow-uri", default=None, help="read the runs from MLflow instead")
     parser.add_argument("--experiment", default=None, help="MLflow experiment (= sweep name)")
@@ -47,10 +51,10 @@ def main(argv=None) -> int:
                 parser.error("--mlflow-uri and --experiment go together")
             from pipeline.experiment.records import records_from_mlflow  # the tracking edge
             frame, source = records_from_mlflow(args.mlflow_uri, args.experiment), Path(".")
-        elif args.source is None:
+        elif not args.source:
             parser.error("give a sweep folder, or --mlflow-uri and --experiment")
         else:
-            frame, source = load_records(args.source), args.source
+            frame, source = combine_records(args.source), args.source[0]
         if args.seeds:
             try:
                 seeds = {int(x) for x in args.seeds.split(",")}

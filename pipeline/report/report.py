@@ -33,6 +33,37 @@ def load_records(source: str | Path) -> pd.DataFrame:
     return in_config_order(frame)
 
 
+EPISODE_KEY = ["scene", "method", "protocol", "setting", "seed"]
+
+
+def combine_records(sources: list[str | Path]) -> pd.DataFrame:
+    """The records of several sweeps as one frame (e.g. a study's rows and a preset's missing
+    rows, reported as one table), in each sweep's config order, one sweep after the other.
+
+    The same episode (scene, method, protocol, setting, seed) finished in two of them is an error
+    naming both sweeps: which one to report is the user's choice (``--seeds`` or fewer sources)."""
+    frames, offset = [], 0
+    for source in sources:
+        frame = load_records(source).copy()
+        if "job_index" in frame:
+            frame["job_index"] = frame["job_index"] + offset
+            offset = int(frame["job_index"].max()) + 1
+        frames.append(frame)
+    if len(frames) == 1:
+        return frames[0]
+    combined = pd.concat(frames, ignore_index=True)
+    final = combined[(combined["kind"] == "final") & (combined["status"] == "FINISHED")]
+    key = [k for k in EPISODE_KEY if k in final]
+    twice = final[final.duplicated(key, keep=False)]
+    if not twice.empty:
+        first = twice.iloc[0]
+        sweeps = sorted(set(twice[(twice[key] == first[key]).all(axis=1)]["sweep"]))
+        where = ", ".join(f"{k}={first[k]}" for k in key)
+        raise ValueError(f"the episode {where} finished in more than one of the sweeps {sweeps} "
+                         f"({len(twice)} such rows in all); report them separately or drop one")
+    return in_config_order(combined)
+
+
 def in_config_order(frame: pd.DataFrame) -> pd.DataFrame:
     """Rows in the order the sweep config lists jobs (not the order they finished in)."""
     if "job_index" not in frame:
