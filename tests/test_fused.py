@@ -9,7 +9,8 @@ import torch
 from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec, view_fisher
 from pipeline.fisher.features import PARAM_GROUPS
-from pipeline.fisher.posterior import (gopre_score, gopre_score_of_fishers, posterior_variance,
+from pipeline.fisher.posterior import (gopre_score, gopre_score_of_fishers, gopre_scores_sparse,
+                                       posterior_variance,
                                        updated_variance)
 from pipeline.fit.config import FitConfig, DensifyConfig
 from pipeline.fit.losses import photometric_loss
@@ -163,3 +164,41 @@ def test_in_place_gopre_score_is_the_composed_score(tau):
     before = fishers.clone()
     assert torch.equal(gopre_score_of_fishers(s, fishers, goal, tau), composed)
     assert torch.equal(fishers, before)  # the candidates' Fishers are not written to
+
+
+def test_sparse_gopre_scores_equal_the_dense_scores():
+    from pipeline.fisher.exact import SparseFisher
+    gen = torch.Generator().manual_seed(3)
+    n, p = 40, 6
+    s = posterior_variance(torch.rand(n, p, generator=gen, dtype=F64) * 3)
+    goal = torch.rand(n, p, generator=gen, dtype=F64) * (torch.rand(n, p, generator=gen) > 0.3)
+    views = []
+    for k in range(5):
+        ids = torch.sort(torch.randperm(n, generator=gen)[:10 + 5 * k]).values
+        views.append(SparseFisher(ids, torch.rand(len(ids), p, generator=gen, dtype=F64)))
+    for tau in (1.0, 0.4):
+        dense = torch.stack([gopre_score(updated_variance(s.flatten(), v.dense(n).flatten()),
+                                         goal.flatten(), tau) for v in views])
+        sparse = gopre_scores_sparse(s, goal, views, tau)
+        assert torch.allclose(sparse, dense, rtol=1e-13, atol=0), tau
+
+
+@pytest.mark.parametrize("options,count", [({}, 1), ({"tau": 0.5}, 3), ({"goal": "identity"}, 2)])
+def test_gopre_over_compact_fishers_picks_and_scores_as_the_dense_path(options, count):
+    from pipeline.acquisition import SelectionContext, make_strategy
+    from pipeline.splat.scenes import sphere_cameras
+    g = random_scene(800, seed=0)
+    pool, taken = sphere_cameras(14, 24, 24, seed=1), sphere_cameras(3, 24, 24, seed=2)
+    probes = sphere_cameras(5, 24, 24, seed=3)
+    results = []
+    for fused in (True, False):
+        with fused_paths(fused):
+            ctx = SelectionContext(g, pool, list(range(100, 114)), taken, torch.ones(3),
+                                   torch.Generator().manual_seed(0), probes,
+                                   settings=RenderSettings(backend="compiled"))
+            results.append(make_strategy("gopre", **options).select(ctx, count))
+    sparse, dense = results
+    assert sparse.chosen == dense.chosen and len(sparse.chosen) == count
+    for k, v in dense.scores.items():
+        assert sparse.scores[k] == pytest.approx(v, rel=1e-9), k
+    assert sparse.fisher_views == dense.fisher_views

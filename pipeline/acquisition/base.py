@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from pipeline.cameras import Cameras
-from pipeline.fisher.exact import FisherSpec, view_fisher
+from pipeline.fisher.exact import FisherSpec, SparseFisher, view_fisher, view_fisher_sparse
 from pipeline.memory import peak_rss_mb
 from pipeline.splat import Gaussians, RenderSettings
 
@@ -68,6 +68,42 @@ def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) ->
     ctx.fisher_seconds += time.perf_counter() - start
     ctx.fisher_views += len(cameras)
     return out
+
+
+def sparse_fishers(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> list[SparseFisher]:
+    """``fisher_vectors`` as one compact ``SparseFisher`` per view (timed and counted the same)."""
+    start = time.perf_counter()
+    out = view_fisher_sparse(ctx.gaussians, cameras, ctx.background, spec, ctx.settings)
+    ctx.fisher_seconds += time.perf_counter() - start
+    ctx.fisher_views += len(cameras)
+    return out
+
+
+def summed_fisher(views: list[SparseFisher], n: int, width: int) -> Tensor:
+    """The sum of the views' Fishers, [N, P] float64 (zeros for no view)."""
+    total = torch.zeros(n, width, dtype=torch.float64)
+    for view in views:
+        total.index_add_(0, view.ids, view.rows)
+    return total
+
+
+def greedy_pick_sparse(candidates: list[SparseFisher], h_train: Tensor,
+                       scores_given: Callable[[Tensor, list[SparseFisher]], Tensor],
+                       count: int) -> tuple[list[int], Tensor]:
+    """``greedy_pick`` (argmin) over compact candidate Fishers: h_train [N, P];
+    scores_given(h, candidates) -> [M]; the conditional update H <- H + F_pick on the pick's rows.
+    Ties go to the lowest position, as ``greedy_pick``."""
+    available = torch.ones(len(candidates), dtype=torch.bool)
+    h = h_train.clone()
+    picks, first = [], None
+    for _ in range(min(count, len(candidates))):
+        s = scores_given(h, candidates)
+        first = s if first is None else first
+        best = int(torch.argmin(torch.where(available, s, torch.full_like(s, torch.inf))))
+        picks.append(best)
+        available[best] = False
+        h.index_add_(0, candidates[best].ids, candidates[best].rows)
+    return picks, first
 
 
 def pool_and_train_fishers(ctx: SelectionContext, order: list[int],

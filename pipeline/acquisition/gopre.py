@@ -15,11 +15,13 @@ from dataclasses import dataclass, field
 import torch
 
 from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
-                                       pool_and_train_fishers, timed_selection)
-from pipeline.fisher.exact import FisherSpec
+                                       greedy_pick_sparse, pool_and_train_fishers, sparse_fishers,
+                                       summed_fisher, timed_selection)
+from pipeline.fisher.exact import FisherSpec, fused_fisher_available
 from pipeline.fisher.features import PARAM_GROUPS
 from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score,
-                                       gopre_score_of_fishers, monte_carlo_score,
+                                       gopre_score_of_fishers, gopre_scores_sparse,
+                                       monte_carlo_score,
                                        posterior_variance, trace_score, updated_variance)
 
 SCORES = ("logdet", "trace", "mc")
@@ -71,9 +73,32 @@ class GoPreStrategy:
             return trace_score(sx, m, tau)
         return score
 
+    def _sparse_run(self, ctx: SelectionContext, count: int):
+        """The logdet score (tau > 0) over compact candidate Fishers: the same picks and scores
+        as the dense path without its [M, N, P] block (used when the fused compiled Fisher is)."""
+        def run(order):
+            cands = sparse_fishers(ctx, ctx.candidates[order], self.spec)
+            n = len(ctx.gaussians)
+            width = cands[0].rows.shape[1]
+            h = summed_fisher(sparse_fishers(ctx, ctx.taken, self.spec) if len(ctx.taken) else [],
+                              n, width)
+            if self.goal == "probes":
+                goal = summed_fisher(sparse_fishers(ctx, ctx.probes, self.spec), n, width)
+                goal /= len(ctx.probes)  # M = mean over the K probes
+            else:
+                goal = torch.ones(n, width, dtype=torch.float64)
+
+            def scores(h_now, views):
+                return gopre_scores_sparse(posterior_variance(h_now, self.lam), goal, views, self.tau)
+            return greedy_pick_sparse(cands, h, scores, count)
+        return run
+
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         if self.goal == "probes" and (ctx.probes is None or len(ctx.probes) == 0):
             raise ValueError("gopre needs probe poses from the target manifold (ctx.probes)")
+        if self.score == "logdet" and self.tau > 0 and fused_fisher_available(ctx.gaussians,
+                                                                             ctx.settings):
+            return timed_selection(ctx, self._sparse_run(ctx, count))
 
         def run(order):
             cands, h = pool_and_train_fishers(ctx, order, self.spec)

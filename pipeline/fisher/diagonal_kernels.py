@@ -4,8 +4,8 @@ The fused tail of ``exact.view_fisher`` on the compiled backend. Per Gaussian th
 pixel sums (``splat.kernels.fisher_rows``, summed per Gaussian); from them this lays out the 9x9
 feature Fisher G exactly as ``exact.assemble_feature_fisher`` does, computes the Gaussian's
 feature Jacobian A (``splat.project_kernels.jacobian_one``, the kernel of
-``features.feature_jacobian_compiled``) and writes diag(A^T G A) straight into the view's
-[N, P] row block, as ``features.FeatureJacobian.fisher_diagonal`` (the oracle; tests compare).
+``features.feature_jacobian_compiled``) and writes diag(A^T G A) of the Gaussians the walk
+reached as compact [M, P] rows, as ``features.FeatureJacobian.fisher_diagonal`` (the oracle; tests compare).
 ``channel_summed`` applies FisherRF's released rule as ``exact.activated_once`` does: the
 log-scale columns become quad(A) / scale, the opacity column G_oo * sigmoid'.
 Nothing per Gaussian leaves the kernel: no [M, 9, 9] G, no [M, 8, 10] Jacobian tensors.
@@ -47,7 +47,7 @@ def _feature_fisher(sums, channel_summed, G):
 
 
 @njit(cache=True, error_model="numpy")
-def _diagonal_block(lo, hi, sums, seen, means, log_scales, quats, logit_opacities, sh0, shn, view,
+def _diagonal_block(lo, hi, ids, sums, means, log_scales, quats, logit_opacities, sh0, shn, view,
                     intr, width, height, sh_degree, near, groups, channel_summed, out):
     scratch = chain_scratch()
     geometry = np.empty((8, 10))
@@ -55,13 +55,12 @@ def _diagonal_block(lo, hi, sums, seen, means, log_scales, quats, logit_opacitie
     G = np.empty((9, 9))
     quad = np.empty(10)
     rows = GEOMETRIC_FEATURES
-    for g in range(lo, hi):
-        if not seen[g]:
-            continue  # the view's rows of out stay zero
+    for j in range(lo, hi):
+        g = ids[j]
         sh_slope[:] = 0.0
         slope = jacobian_one(g, means, log_scales, quats, logit_opacities, sh0, shn, view, intr,
                              width, height, sh_degree, near, scratch, geometry, sh_slope)
-        _feature_fisher(sums[g], channel_summed, G)
+        _feature_fisher(sums[j], channel_summed, G)
         for q in range(10):  # sum_rs G_rs A_rq A_sq over the geometric rows
             acc = 0.0
             for r in range(8):
@@ -76,43 +75,43 @@ def _diagonal_block(lo, hi, sums, seen, means, log_scales, quats, logit_opacitie
         col = 0
         if groups[MEANS]:
             for q in range(3):
-                out[g, col] = quad[q]
+                out[j, col] = quad[q]
                 col += 1
         if groups[LOG_SCALES]:
             for q in range(3, 6):
                 # released rule: the Jacobian w.r.t. the scale (A / s), the factor s applied once
-                out[g, col] = quad[q] / math.exp(log_scales[g, q - 3]) if channel_summed else quad[q]
+                out[j, col] = quad[q] / math.exp(log_scales[g, q - 3]) if channel_summed else quad[q]
                 col += 1
         if groups[QUATS]:
             for q in range(6, 10):
-                out[g, col] = quad[q]
+                out[j, col] = quad[q]
                 col += 1
         if groups[OPACITY]:
-            out[g, col] = G[5, 5] * slope if channel_summed else G[5, 5] * slope * slope
+            out[j, col] = G[5, 5] * slope if channel_summed else G[5, 5] * slope * slope
             col += 1
         if groups[SH0]:
             for c in range(3):
-                out[g, col] = sh_slope[0, c] * sh_slope[0, c] * G[6 + c, 6 + c]
+                out[j, col] = sh_slope[0, c] * sh_slope[0, c] * G[6 + c, 6 + c]
                 col += 1
         if groups[SHN]:
             for k in range(1, sh_slope.shape[0]):
                 for c in range(3):
-                    out[g, col] = sh_slope[k, c] * sh_slope[k, c] * G[6 + c, 6 + c]
+                    out[j, col] = sh_slope[k, c] * sh_slope[k, c] * G[6 + c, 6 + c]
                     col += 1
 
 
 @njit(parallel=PRANGE_ONLY, cache=True)
-def fisher_diagonal(sums, seen, means, log_scales, quats, logit_opacities, sh0, shn, view, intr,
+def fisher_diagonal(ids, sums, means, log_scales, quats, logit_opacities, sh0, shn, view, intr,
                     width, height, sh_degree, near, groups, channel_summed, out, workers):
-    """Write diag(A^T G A) of every ``seen`` Gaussian into out [N, P] float64 (zeros elsewhere,
-    left as they are). sums [N, 40] float64 per-Gaussian walk sums; groups [6] bool: which of
-    ``PARAM_GROUPS`` the P columns hold, in that order."""
-    n = means.shape[0]
+    """Write diag(A^T G A) of Gaussian ids[j] into out[j] [M, P] float64 for the M Gaussians the
+    walk reached (every other Gaussian's Fisher is zero). sums [M, 40] float64 their walk sums;
+    groups [6] bool: which of ``PARAM_GROUPS`` the P columns hold, in that order."""
+    m = ids.shape[0]
     if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
-        _diagonal_block(0, n, sums, seen, means, log_scales, quats, logit_opacities, sh0, shn,
+        _diagonal_block(0, m, ids, sums, means, log_scales, quats, logit_opacities, sh0, shn,
                         view, intr, width, height, sh_degree, near, groups, channel_summed, out)
     else:
         for w in prange(workers):
-            _diagonal_block(w * n // workers, (w + 1) * n // workers, sums, seen, means,
+            _diagonal_block(w * m // workers, (w + 1) * m // workers, ids, sums, means,
                             log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                             height, sh_degree, near, groups, channel_summed, out)

@@ -440,7 +440,7 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
     """
     if len(cameras) == 0:
         raise ValueError("view_fisher: no cameras (the Fisher of no view is not defined here)")
-    if fisher_backend(settings, gaussians.means.device).name == "compiled" and compiled.fused_enabled():
+    if fused_fisher_available(gaussians, settings):
         return view_fisher_fused(gaussians, cameras, background, spec, settings)
     out = None
     for c, factors in enumerate(view_factors(gaussians, cameras, background, spec, settings)):
@@ -450,25 +450,39 @@ def view_fisher(gaussians: Gaussians, cameras: Cameras, background: Tensor | Non
     return out
 
 
-def view_fisher_fused(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
-                      spec: FisherSpec = FisherSpec(),
-                      settings: RenderSettings = RenderSettings()) -> Tensor:
-    """``view_fisher`` on the compiled backend with its tail fused (``diagonal_kernels``): per
-    view, projection, walk and Fisher rows as ``feature_fisher_compiled``, then the rows summed per
-    Gaussian and diag(A^T G A) written by one kernel into the view's [N, P] block. [C, N, P]."""
+@dataclass
+class SparseFisher:
+    """One view's exact diagonal Fisher in compact form: ids [M] (sorted Gaussian ids, int64) of
+    the Gaussians its walk reached and their rows [M, P] float64; every other row is zero."""
+
+    ids: Tensor
+    rows: Tensor
+
+    def dense(self, n: int) -> Tensor:
+        """[N, P] float64."""
+        out = self.rows.new_zeros(n, self.rows.shape[1])
+        out[self.ids] = self.rows
+        return out
+
+
+def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | None,
+                 spec: FisherSpec, settings: RenderSettings):
+    """Yield one ``SparseFisher`` per camera by the fused compiled path (``diagonal_kernels``):
+    projection, walk and Fisher rows as ``feature_fisher_compiled``, the rows summed per Gaussian,
+    then diag(A^T G A) of the reached Gaussians written by one kernel."""
     from pipeline.fisher import diagonal_kernels
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
     gaussians.validate()
     kernels = compiled.load()
     layout = param_layout(gaussians, spec.groups)
+    width = sum(w for _, w in layout)
     groups = np.array([any(g == name for g, _ in layout) for name in PARAM_GROUPS])
     cams = cameras.to(device=gaussians.means.device, dtype=gaussians.means.dtype)
     bg = gaussians.means.new_zeros(3) if background is None else background
     g = gaussians.detach()
-    degree = active_sh_degree(g, spec.sh_degree)
+    n, degree = len(g), active_sh_degree(g, spec.sh_degree)
     arrays = [compiled.to_numpy(v) for v in g.params().values()]
-    out = torch.zeros(len(cams), len(g), sum(w for _, w in layout), dtype=torch.float64)
     workers = compiled.use_threads()
     for c in range(len(cams)):
         with torch.no_grad():
@@ -478,22 +492,60 @@ def view_fisher_fused(gaussians: Gaussians, cameras: Cameras, background: Tensor
                                      proj.depths, cams.width, cams.height, settings.tile_size)
         colors = compiled.to_numpy(proj.colors)
         # the walk alone (final transmittance, walked lengths): no feature channel to composite
-        _, final, walked = bins.forward(np.empty((len(g), 0), dtype=colors.dtype), workers)
+        _, final, walked = bins.forward(np.empty((n, 0), dtype=colors.dtype), workers)
         row_start, row_ids = bins.walked_rows(walked)
         rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
                                    bins.packed, colors, final, walked,
                                    compiled.to_numpy(bg.double()), bins.tiles_x, settings.tile_size,
                                    spec.channel_summed, workers)
-        sums = kernels.sum_rows(row_ids, rows, len(g), rows)
-        seen = np.zeros(len(g), dtype=np.bool_)
+        seen = np.zeros(n, dtype=np.bool_)
         seen[row_ids] = True
+        ids = np.flatnonzero(seen)
+        sums = kernels.sum_rows(row_ids, rows, n, rows)[ids]
         K = cams.Ks[c]
         intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+        out = np.empty((ids.shape[0], width))
         diagonal_kernels.fisher_diagonal(
-            sums, seen, *arrays, compiled.to_numpy(cams.viewmats[c].double()), intr,
+            ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()), intr,
             int(cams.width), int(cams.height), int(degree), float(settings.near), groups,
-            spec.channel_summed, out[c].numpy(), workers)
+            spec.channel_summed, out, workers)
+        yield SparseFisher(torch.from_numpy(ids), torch.from_numpy(out))
+
+
+def fused_fisher_available(gaussians: Gaussians, settings: RenderSettings) -> bool:
+    """Whether ``settings`` resolve to the compiled backend with its fused paths on."""
+    return (fisher_backend(settings, gaussians.means.device).name == "compiled"
+            and compiled.fused_enabled())
+
+
+def view_fisher_fused(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
+                      spec: FisherSpec = FisherSpec(),
+                      settings: RenderSettings = RenderSettings()) -> Tensor:
+    """``view_fisher`` on the compiled backend with its tail fused: [C, N, P] float64."""
+    out = None
+    for c, view in enumerate(_fused_views(gaussians, cameras, background, spec, settings)):
+        if out is None:
+            out = torch.zeros(len(cameras), len(gaussians), view.rows.shape[1], dtype=torch.float64)
+        out[c, view.ids] = view.rows
     return out
+
+
+def view_fisher_sparse(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = None,
+                       spec: FisherSpec = FisherSpec(),
+                       settings: RenderSettings = RenderSettings()) -> list[SparseFisher]:
+    """``view_fisher`` as one ``SparseFisher`` per view (no [C, N, P] block: a pool of hundreds
+    of views at 10k Gaussians was a 1.2 GB allocation per round). The fused compiled path when
+    ``settings`` resolve to it, else each view's dense Fisher compacted to its non-zero rows."""
+    if len(cameras) == 0:
+        raise ValueError("view_fisher: no cameras (the Fisher of no view is not defined here)")
+    if fused_fisher_available(gaussians, settings):
+        return list(_fused_views(gaussians, cameras, background, spec, settings))
+    views = []
+    for c in range(len(cameras)):
+        dense = view_fisher(gaussians, cameras[c:c + 1], background, spec, settings)[0]
+        ids = torch.nonzero(dense.abs().sum(1) > 0).flatten()
+        views.append(SparseFisher(ids, dense[ids]))
+    return views
 
 
 def predictive_variance_maps(gaussians: Gaussians, cameras: Cameras, posterior_var: Tensor,

@@ -67,6 +67,25 @@ def gopre_score_of_fishers(s: Tensor, fisher_x: Tensor, goal: Tensor, tau: float
     return t.log1p_().sum(-1)
 
 
+def gopre_scores_sparse(s: Tensor, goal: Tensor, views, tau: float = 1.0) -> Tensor:
+    """``gopre_score(updated_variance(s, F_x), goal, tau)`` for each view x given as a
+    ``fisher.exact.SparseFisher`` (ids [M], rows [M, P]): s, goal [N, P]. A view changes the
+    posterior only on its own rows, so each score is the no-view total plus its rows' change,
+    computed with the same operations as the dense score (1 / (1 / S) for the untouched entries,
+    as the dense formula evaluates them). [len(views)] float64."""
+    inv_s = 1.0 / s
+    untouched = torch.log1p(inv_s.reciprocal() * goal / tau ** 2)
+    total = untouched.sum()
+    scores = torch.empty(len(views), dtype=torch.float64)
+    for i, view in enumerate(views):
+        t = view.rows + inv_s[view.ids]
+        t.reciprocal_().mul_(goal[view.ids])
+        if tau != 1.0:
+            t.div_(tau ** 2)
+        scores[i] = total + (t.log1p_().sum() - untouched[view.ids].sum())
+    return scores
+
+
 def gopre_limit_score(sx: Tensor, goal: Tensor) -> Tensor:
     """The tau -> 0 limit of ``gopre_score`` up to candidate-independent terms:
     sum over {i : M_i > 0} of log Sx_i, [..., D] -> [...]; lower is better. M's values do not
