@@ -138,3 +138,15 @@ def test_paper_only_writes_just_the_comparison(tmp_path):
     assert report_main([str(tmp_path), "--out", str(tmp_path / "o"), "--paper", "--paper-only"]) == 0
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["paper.md"]
 
+
+
+def test_a_studys_protocol_setting_pairs_with_a_presets_rows():
+    """The study names its protocol as a setting (protocol.kind=global), the preset has none: the
+    table fixes the protocol, so the two pair (they are the same episodes' conditions)."""
+    datasets, tables = load_paper_tables()
+    table = tables["table1_global"]
+    study = records({"gopre": 1.0, "popgs": 0.0}, setting="protocol.kind=global", sweep="science")
+    preset = records({"gaussmi": -0.5})
+    part = rows_of(pd.concat([study, preset], ignore_index=True), table, datasets)
+    v = judge(table.claims[0], part, ["gaussmi", "popgs", "gopre"])
+    assert "vs gaussmi +1.50" in v.detail and "n = 6" in v.detail

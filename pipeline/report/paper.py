@@ -114,9 +114,16 @@ def rows_of(final: pd.DataFrame, table: PaperTable, datasets: dict[str, list[str
     part["setting"] = part["setting"].fillna("")
     by_method = table.rows_by == "method"
     part["row"] = part["method"] if by_method else part["setting"].map(_setting_row)
-    part["pair"] = part["setting"] if by_method else part["method"]
+    # the protocol is fixed by the table, so a setting that only names it pairs with no setting
+    # (a study's "protocol.kind=global" rows with a preset's rows, reported together)
+    part["pair"] = part["setting"].map(_other_axes) if by_method else part["method"]
     part["paper_dataset"] = part["scene"].map(lambda s: paper_dataset(s, datasets))
     return part
+
+
+def _other_axes(setting: str) -> str:
+    """The setting without its ``protocol.kind=`` part ('' when nothing else is left)."""
+    return ",".join(p for p in str(setting).split(",") if p and not p.startswith("protocol.kind="))
 
 
 def _setting_row(setting: str) -> str:
