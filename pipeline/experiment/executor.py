@@ -21,9 +21,10 @@ from typing import Callable
 from pipeline.data.scene import Scene
 from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_handlers,
                                            install_stop_handlers, restore_handlers)
-from pipeline.experiment.job import failed_outcome, run_with_retries
+from pipeline.experiment.job import run_with_retries
+from pipeline.experiment.outcome import JobOutcome
 
-OnDone = Callable[[dict, dict], None]
+OnDone = Callable[[dict, JobOutcome], None]
 OnRound = Callable[[dict, dict], None]
 POLL_SECONDS = 0.5  # how often the Ray driver looks for round messages while jobs run
 
@@ -49,11 +50,12 @@ def scene_key(job: dict) -> str:
 
 
 def _remote_run(job: dict, scene: Scene | None, queue=None) -> dict:
+    """A Ray task: the outcome as plain data (``JobOutcome.to_dict``)."""
     report = None
     if queue is not None:
         def report(message: dict) -> None:
             queue.put_nowait((job["config_hash"], message))
-    return run_with_retries(job, scene, report)
+    return run_with_retries(job, scene, report).to_dict()
 
 
 class RoundChannel:
@@ -133,9 +135,9 @@ class RayExecutor:
                 job = pending.pop(done[0])
                 try:
                     with critical():
-                        outcome = ray.get(done[0])
+                        outcome = JobOutcome.from_dict(ray.get(done[0]))
                 except Exception:  # the worker died more often than max_retries allows
-                    outcome = failed_outcome(self.max_retries + 1, [traceback.format_exc()])
+                    outcome = JobOutcome.failed(self.max_retries + 1, [traceback.format_exc()])
                 on_done(job, outcome)
         except SweepInterrupted:
             self.running = self._cancel(ray, pending) if ray is not None else []

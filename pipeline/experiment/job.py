@@ -1,7 +1,7 @@
 """What a worker runs for one job: the episode (or the uncertainty experiment), with retries.
 
-Workers never write to MLflow: they return an outcome dict (records and artifact bytes) that the
-driver tracks. Their job folder holds the episode checkpoint (a killed job resumes from its last
+Workers never write to MLflow: they return a ``JobOutcome`` (the result and artifact bytes) that
+the driver tracks. Their job folder holds the episode checkpoint (a killed job resumes from its last
 finished round) and a log with one line per round. While a job runs, each finished round is also
 handed to an optional ``report`` callable as a small dict (``round_message``); the executors carry
 it to the driver, which prints it and logs it to the tracker.
@@ -26,6 +26,7 @@ from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
 from pipeline.experiment.build import episode_config, uncertainty_config
 from pipeline.experiment.layout import MODEL, JobFolder
+from pipeline.experiment.outcome import FINISHED, JobOutcome
 from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
 
@@ -167,7 +168,7 @@ def run_job(job: dict, scene: Scene | None = None, report: Report | None = None)
     return outcome
 
 
-def run_with_retries(job: dict, scene: Scene | None = None, report: Report | None = None) -> dict:
+def run_with_retries(job: dict, scene: Scene | None = None, report: Report | None = None) -> JobOutcome:
     """``run_job`` with ``execution.retries`` re-runs after an exception; the outcome says
     FINISHED, or FAILED with the last traceback. Never raises for an application error."""
     attempts = 1 + max(0, int(job["execution"]["retries"]))
@@ -175,17 +176,11 @@ def run_with_retries(job: dict, scene: Scene | None = None, report: Report | Non
     for attempt in range(1, attempts + 1):
         try:
             outcome = run_job(job, scene, report)
-            return {**outcome, "status": "FINISHED", "attempts": attempt, "errors": errors}
+            return JobOutcome(FINISHED, attempt, errors, outcome["result"], outcome["artifacts"],
+                              outcome["seconds"])
         except Exception:
             errors.append(traceback.format_exc())
             folder = Path(job["execution"]["job_dir"])
             folder.mkdir(parents=True, exist_ok=True)
             _log(folder, f"attempt {attempt}/{attempts} failed:\n{errors[-1]}")
-    return failed_outcome(attempts, errors)
-
-
-def failed_outcome(attempts: int, errors: list[str]) -> dict:
-    """The one FAILED outcome (the retries ran out, or the worker process died): the last
-    traceback also as the artifact ``traceback.txt``."""
-    return {"status": "FAILED", "attempts": attempts, "errors": list(errors), "traceback": errors[-1],
-            "result": None, "artifacts": {"traceback.txt": errors[-1].encode()}}
+    return JobOutcome.failed(attempts, errors)

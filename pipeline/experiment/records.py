@@ -23,13 +23,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.experiment.outcome import JobOutcome
+
 RECORDS = "records.parquet"
 
 
-def identity(job: dict, outcome: dict, run_id: str | None) -> dict:
+def identity(job: dict, outcome: JobOutcome, run_id: str | None) -> dict:
     return {"sweep": job["sweep"], "job_index": job.get("index"), "config_hash": job["config_hash"],
             "run_id": run_id,
-            "status": outcome["status"], "job_kind": job["kind"], "dataset": job["dataset"],
+            "status": outcome.status, "job_kind": job["kind"], "dataset": job["dataset"],
             "scene": job["scene"], "method": job["method"], "strategy": job["strategy"],
             "protocol": job["protocol"]["kind"], "seed": job["seed"], "setting": job["setting"],
             "axes": json.dumps(job["axes"], sort_keys=True), "code_version": job.get("code_version")}
@@ -68,15 +70,15 @@ def uncertainty_rows(base: dict, result: dict, seconds: float) -> list[dict]:
     return rows
 
 
-def job_rows(job: dict, outcome: dict, run_id: str | None) -> list[dict]:
+def job_rows(job: dict, outcome: JobOutcome, run_id: str | None) -> list[dict]:
     base = identity(job, outcome, run_id)
-    if outcome["status"] != "FINISHED":
-        return [{**base, "kind": "final", "error": outcome.get("traceback", "")[-2000:],
-                 "attempts": outcome.get("attempts")}]
+    if not outcome.finished:
+        return [{**base, "kind": "final", "error": outcome.traceback[-2000:],
+                 "attempts": outcome.attempts}]
     rows_for = uncertainty_rows if job["kind"] == "uncertainty" else episode_rows
-    rows = rows_for(base, outcome["result"], outcome.get("seconds"))
+    rows = rows_for(base, outcome.result, outcome.seconds)
     for row in rows:
-        row["attempts"] = outcome.get("attempts")
+        row["attempts"] = outcome.attempts
     return rows
 
 

@@ -24,6 +24,7 @@ from pipeline.experiment.executor import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.lock import SweepLock, SweepLocked
+from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
@@ -56,15 +57,15 @@ class Progress:
         self.done = self.failed = 0
         self.job_seconds: list[float] = []
 
-    def update(self, job: dict, outcome: dict) -> None:
+    def update(self, job: dict, outcome: JobOutcome) -> None:
         self.done += 1
-        self.failed += outcome["status"] != "FINISHED"
+        self.failed += not outcome.finished
         left = self.total - self.done
-        self.job_seconds.append(outcome.get("seconds") or 0.0)
+        self.job_seconds.append(outcome.seconds or 0.0)
         eta = sum(self.job_seconds) / len(self.job_seconds) * left / self.slots  # jobs alike, slots full
         running = min(left, self.slots)
         LOG.info(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
-                 f"ETA {eta / 60:.1f} min | {job_label(job)}: {outcome['status']} "
+                 f"ETA {eta / 60:.1f} min | {job_label(job)}: {outcome.status} "
                  f"{_headline(outcome)}")
         self.degraded(job, outcome)
 
@@ -74,8 +75,8 @@ class Progress:
         LOG.info(f"[{self.name}] {job_label(job)}: {what}, {message['num_views']} views, "
                  f"PSNR {message['test_psnr']:.2f} dB, {message['seconds']:.0f} s")
 
-    def degraded(self, job: dict, outcome: dict) -> None:
-        final = ((outcome.get("result") or {}).get("final")) or {}
+    def degraded(self, job: dict, outcome: JobOutcome) -> None:
+        final = outcome.final
         if final.get("degraded"):
             LOG.warning(f"[{self.name}] warning: {job_label(job)} ended on a degraded model: final PSNR "
                         f"{final['curve_psnr_drop']:.2f} dB below its last round on the same views "
@@ -87,26 +88,26 @@ def job_label(job: dict) -> str:
     return f"{job['method']} on {job['scene']} (seed {job['seed']}{setting})"
 
 
-def _headline(outcome: dict) -> str:
-    result = outcome.get("result")
+def _headline(outcome: JobOutcome) -> str:
+    result = outcome.result
     if not result:
-        return "(see traceback.txt)"
+        return f"(see {TRACEBACK_ARTIFACT})"
     if "final" in result:
-        return f"PSNR {result['final']['psnr']:.2f} dB in {outcome.get('seconds', 0):.0f} s"
+        return f"PSNR {result['final']['psnr']:.2f} dB in {outcome.seconds or 0:.0f} s"
     return f"AUSE {json.dumps({k: round(v, 3) for k, v in result['ause'].items()})}"
 
 
-def save_artifacts(output_dir: Path, job: dict, outcome: dict) -> None:
+def save_artifacts(output_dir: Path, job: dict, outcome: JobOutcome) -> None:
     """Artifacts also go to <output_dir>/jobs/<hash>/artifacts (what reports read offline)."""
     job_folder = SweepFolder(output_dir).job(job["config_hash"])
     folder = job_folder.artifacts
-    for name, data in (outcome.get("artifacts") or {}).items():
+    for name, data in outcome.artifacts.items():
         path = folder / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(data)
-    if outcome.get("result") is not None:
+    if outcome.result is not None:
         folder.mkdir(parents=True, exist_ok=True)
-        job_folder.result_file.write_text(json.dumps(outcome["result"], default=str))
+        job_folder.result_file.write_text(json.dumps(outcome.result, default=str))
 
 
 def every_quarter(split: str, done: int, total: int) -> None:
@@ -259,13 +260,13 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
     if todo:
         progress = Progress(str(cfg.name), len(todo), 1)
 
-        def on_done(job: dict, outcome: dict) -> None:
+        def on_done(job: dict, outcome: JobOutcome) -> None:
             with critical():  # a stop signal waits until the job is recorded and tracked
                 record(job, outcome)
 
-        def record(job: dict, outcome: dict) -> None:
+        def record(job: dict, outcome: JobOutcome) -> None:
             nonlocal failed
-            failed += outcome["status"] != "FINISHED"
+            failed += not outcome.finished
             try:
                 run_id = tracker.log_job(job, outcome)
             except Exception as err:  # tracking trouble must not lose the job's records
@@ -345,9 +346,9 @@ def sync_tracking(cfg: DictConfig) -> dict:
         row = finals[finals["config_hash"] == config_hash].iloc[0]
         artifacts = {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
                      if p.is_file() and p != job_folder.result_file}
-        outcome = {"status": "FINISHED", "result": json.loads(job_folder.result_file.read_text()),
-                   "artifacts": artifacts, "attempts": row.get("attempts"),
-                   "seconds": row.get("wall_seconds")}
+        outcome = JobOutcome(FINISHED, _count(row.get("attempts")), [],
+                             json.loads(job_folder.result_file.read_text()), artifacts,
+                             _number(row.get("wall_seconds")))
         run_id = tracker.log_job(job, outcome)
         records.add([{**r, "run_id": run_id} for r in
                       records.frame[records.frame["config_hash"] == config_hash].to_dict("records")])
@@ -357,3 +358,14 @@ def sync_tracking(cfg: DictConfig) -> dict:
              + (f", {len(unknown)} not replayable (not in this sweep's config, or no jobs/<hash>/artifacts/result.json): "
                 f"{', '.join(unknown)}" if unknown else ""))
     return {"synced": synced, "unknown": unknown}
+
+
+def _number(value) -> float | None:
+    """A records cell as a float, None when missing (NaN or None)."""
+    return None if value is None or value != value else float(value)
+
+
+def _count(value) -> int:
+    """A records cell holding an attempt count (1 when it was not recorded)."""
+    number = _number(value)
+    return 1 if number is None else int(number)

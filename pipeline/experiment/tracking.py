@@ -16,6 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipeline.experiment.outcome import JobOutcome
 from pipeline.experiment.provenance import code_version
 
 TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version")
@@ -60,7 +61,7 @@ class NoTracker:
     def log_round(self, job: dict, message: dict) -> None:
         pass
 
-    def log_job(self, job: dict, outcome: dict) -> str | None:
+    def log_job(self, job: dict, outcome: JobOutcome) -> str | None:
         return None
 
     def end(self, summary: dict) -> None:
@@ -188,11 +189,11 @@ class MlflowTracker:
             from PIL import Image
             self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=message["num_views"])
 
-    def log_job(self, job: dict, outcome: dict) -> str:
+    def log_job(self, job: dict, outcome: JobOutcome) -> str:
         """Complete the job's child run (the live one, else a new one) with its final state."""
         run_id, logged = self.live.pop(job["config_hash"], None) or (self._child_run(job), set())
-        tags = {"attempts": str(outcome.get("attempts"))}
-        final = (outcome.get("result") or {}).get("final") or {}
+        tags = {"attempts": str(outcome.attempts)}
+        final = outcome.final
         if "degraded" in final:  # the final model fell > 3 dB below its last round (see records)
             tags["degraded"] = str(bool(final["degraded"])).lower()
         if "lpips_status" in final:  # why LPIPS is (un)available, read back by records_from_mlflow
@@ -201,37 +202,38 @@ class MlflowTracker:
             tags["job_index"] = str(job["index"])
         for key, value in tags.items():
             self.client.set_tag(run_id, key, value)
-        if outcome["status"] == "FINISHED":
+        if outcome.finished:
             self._log_metrics(run_id, self._metrics(job, outcome, logged))
         self._log_artifacts(run_id, job, outcome)
-        self.client.set_terminated(run_id, outcome["status"])
+        self.client.set_terminated(run_id, outcome.status)
         return run_id
 
     @staticmethod
-    def _metrics(job: dict, outcome: dict, logged: set[int] = frozenset()) -> list[tuple[str, float, int]]:
+    def _metrics(job: dict, outcome: JobOutcome,
+                 logged: set[int] = frozenset()) -> list[tuple[str, float, int]]:
         """Final metrics, and the round metrics of steps not already logged live."""
-        result = outcome["result"]
+        result = outcome.result
         if job["kind"] == "uncertainty":
             return [(f"ause_{name}", v, 0) for name, v in result["ause"].items()]
         out = [m for r in result["rounds"] if r["num_views"] not in logged for m in round_metrics(r)]
         final = result["final"]
         out += [("final_psnr", final["psnr"], 0), ("final_ssim", final["ssim"], 0),
-                ("wall_seconds", outcome.get("seconds"), 0),
+                ("wall_seconds", outcome.seconds, 0),
                 ("curve_psnr_drop", final.get("curve_psnr_drop"), 0),
                 ("nonfinite_steps", final.get("nonfinite_steps", 0), 0)]
         if final["lpips"] is not None:
             out.append(("final_lpips", final["lpips"], 0))
         return out
 
-    def _log_artifacts(self, run_id: str, job: dict, outcome: dict) -> None:
+    def _log_artifacts(self, run_id: str, job: dict, outcome: JobOutcome) -> None:
         import json
 
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
             (folder / "config.json").write_text(json.dumps({k: v for k, v in job.items()}, indent=1))
-            if outcome.get("result") is not None:
-                (folder / "result.json").write_text(json.dumps(outcome["result"], default=str))
-            for name, data in (outcome.get("artifacts") or {}).items():
+            if outcome.result is not None:
+                (folder / "result.json").write_text(json.dumps(outcome.result, default=str))
+            for name, data in outcome.artifacts.items():
                 path = folder / name
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_bytes(data)

@@ -1,0 +1,67 @@
+"""What one job ended with: the typed record every room after the worker reads (issue 30).
+
+A worker returns a ``JobOutcome``; across Ray it travels as ``to_dict()`` (plain data) and the
+driver reads it back with ``from_dict``. The executors, the sweep driver, the records and the
+tracker read attributes, not string keys, and a FAILED outcome is built in one place
+(``JobOutcome.failed``) whether the retries ran out or the worker process died.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+FINISHED, FAILED = "FINISHED", "FAILED"
+TRACEBACK_ARTIFACT = "traceback.txt"
+
+
+@dataclass
+class JobOutcome:
+    """status FINISHED or FAILED; attempts made; errors: the traceback of each failed attempt;
+    result: the job's result dict (``EpisodeResult.to_dict()`` or the uncertainty experiment's;
+    None when FAILED); artifacts: file name -> bytes for the tracker; seconds: the last
+    attempt's wall time (None when not measured, e.g. a FAILED or a resumed outcome)."""
+
+    status: str
+    attempts: int = 1
+    errors: list[str] = field(default_factory=list)
+    result: dict | None = None
+    artifacts: dict[str, bytes] = field(default_factory=dict)
+    seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.status not in (FINISHED, FAILED):
+            raise ValueError(f"JobOutcome status must be {FINISHED} or {FAILED}, got {self.status!r}")
+        if self.status == FINISHED and self.result is None:
+            raise ValueError("a FINISHED JobOutcome needs its result")
+
+    @classmethod
+    def failed(cls, attempts: int, errors: list[str]) -> "JobOutcome":
+        """The one FAILED outcome: the last traceback also as the artifact ``traceback.txt``."""
+        if not errors:
+            raise ValueError("JobOutcome.failed needs the traceback of at least one attempt")
+        return cls(FAILED, attempts, list(errors), None,
+                   {TRACEBACK_ARTIFACT: errors[-1].encode()})
+
+    @property
+    def finished(self) -> bool:
+        return self.status == FINISHED
+
+    @property
+    def traceback(self) -> str:
+        """The last attempt's traceback ('' when no attempt failed)."""
+        return self.errors[-1] if self.errors else ""
+
+    @property
+    def final(self) -> dict:
+        """The result's final metrics (``{}`` for a FAILED outcome or a result without them)."""
+        return (self.result or {}).get("final") or {}
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "JobOutcome":
+        unknown = set(data) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"JobOutcome.from_dict: unknown keys {sorted(unknown)}")
+        return cls(**data)
