@@ -1,6 +1,7 @@
 """The typed job outcome: one FAILED constructor, plain data across Ray and back unchanged."""
 
 import pickle
+from dataclasses import replace
 
 import pytest
 
@@ -34,3 +35,18 @@ def test_failed_keeps_every_traceback_and_the_last_as_an_artifact():
 def test_malformed_outcomes_are_refused(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_a_round_message_is_light_plain_data_and_comes_back_the_same():
+    from pipeline.active.episode import RoundRecord
+    from pipeline.experiment.outcome import RoundMessage
+    rec = RoundRecord(round=2, num_views=6, iteration=900, test_psnr=18.5, test_ssim=0.6,
+                      num_gaussians=5000, train_seconds=10.0, selected=[41], probes=[1, 2, 3],
+                      scores={41: -3.0, 42: -2.5}, candidates=2, selection_seconds=2.345)
+    message = RoundMessage.of(rec, rounds=17)
+    assert message.record.scores == {} and message.record.probes == [] and rec.scores  # copy
+    assert not message.final and message.seconds == 12.35
+    assert RoundMessage.of(replace(rec, round=16), 17).final
+    message.images = {"picked": b"png"}
+    again = RoundMessage.from_dict(pickle.loads(pickle.dumps(message.to_dict())))
+    assert again == message

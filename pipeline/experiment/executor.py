@@ -22,10 +22,10 @@ from pipeline.data.scene import Scene
 from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_handlers,
                                            install_stop_handlers, restore_handlers)
 from pipeline.experiment.job import run_with_retries
-from pipeline.experiment.outcome import JobOutcome
+from pipeline.experiment.outcome import JobOutcome, RoundMessage
 
 OnDone = Callable[[dict, JobOutcome], None]
-OnRound = Callable[[dict, dict], None]
+OnRound = Callable[[dict, RoundMessage], None]
 POLL_SECONDS = 0.5  # how often the Ray driver looks for round messages while jobs run
 
 
@@ -53,8 +53,8 @@ def _remote_run(job: dict, scene: Scene | None, queue=None) -> dict:
     """A Ray task: the outcome as plain data (``JobOutcome.to_dict``)."""
     report = None
     if queue is not None:
-        def report(message: dict) -> None:
-            queue.put_nowait((job["config_hash"], message))
+        def report(message: RoundMessage) -> None:
+            queue.put_nowait((job["config_hash"], message.to_dict()))
     return run_with_retries(job, scene, report).to_dict()
 
 
@@ -74,7 +74,7 @@ class RoundChannel:
                 if self.queue.empty():
                     return
                 config_hash, message = self.queue.get_nowait()
-            self.on_round(self.jobs[config_hash], message)
+            self.on_round(self.jobs[config_hash], RoundMessage.from_dict(message))
 
     def close(self) -> None:
         self.queue.shutdown()

@@ -3,8 +3,8 @@
 Workers never write to MLflow: they return a ``JobOutcome`` (the result and artifact bytes) that
 the driver tracks. Their job folder holds the episode checkpoint (a killed job resumes from its last
 finished round) and a log with one line per round. While a job runs, each finished round is also
-handed to an optional ``report`` callable as a small dict (``round_message``); the executors carry
-it to the driver, which prints it and logs it to the tracker.
+handed to an optional ``report`` callable as a ``RoundMessage``; the executors carry it to the
+driver, which prints it and logs it to the tracker.
 """
 
 from __future__ import annotations
@@ -13,20 +13,19 @@ import json
 import os
 import time
 import traceback
-from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
 import torch
 
-from pipeline.active import RoundRecord, episode_plan, run_episode
+from pipeline.active import episode_plan, run_episode
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
 from pipeline.experiment.build import episode_config, uncertainty_config
 from pipeline.experiment.layout import MODEL, JobFolder
-from pipeline.experiment.outcome import FINISHED, JobOutcome
+from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage
 from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
 
@@ -44,18 +43,7 @@ def _log(folder: Path, line: str) -> None:
         f.write(f"{time.strftime('%H:%M:%S')} {line}\n")
 
 
-Report = Callable[[dict], None]
-
-
-def round_message(rec: RoundRecord, rounds: int) -> dict:
-    """What the driver hears of one finished round: the round record (without the per-candidate
-    scores and probe ids) with ``rounds`` (selection rounds + the final evaluation), ``final``
-    (this is the final evaluation) and ``seconds`` (training + selection). ``round`` counts from 0,
-    as in the records."""
-    message = {k: v for k, v in asdict(rec).items() if k not in ("scores", "probes")}
-    return {**message, "rounds": rounds, "final": rec.round + 1 == rounds,
-            "seconds": round(rec.train_seconds + rec.selection_seconds, 2)}
-
+Report = Callable[[RoundMessage], None]
 
 
 
@@ -110,9 +98,9 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
         _log(folder, f"round {rec.round}: {rec.num_views} views, psnr {rec.test_psnr:.2f}, "
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
         if report is not None:
-            message = round_message(rec, rounds)
+            message = RoundMessage.of(rec, rounds)
             if rec.round in pending_images:
-                message["images"] = pending_images.pop(rec.round)
+                message.images = pending_images.pop(rec.round)
             report(message)
     def on_resume(done: int):  # a retried, interrupted or relaunched job continues where it stopped
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
@@ -154,7 +142,7 @@ def run_uncertainty_job(job: dict, scene: Scene, folder: Path, report: Report | 
 
 def run_job(job: dict, scene: Scene | None = None, report: Report | None = None) -> dict:
     """Run one job once; ``scene`` comes from the object store, else it is read here;
-    ``report`` hears every finished round (``round_message``)."""
+    ``report`` hears every finished round (a ``RoundMessage``)."""
     ex = job["execution"]
     set_threads(ex["threads"])
     folder = Path(ex["job_dir"])

@@ -1,4 +1,5 @@
-"""What one job ended with: the typed record every room after the worker reads (issue 30).
+"""What one job ended with, and what it says while it runs: the typed records every room after
+the worker reads (issue 30).
 
 A worker returns a ``JobOutcome``; across Ray it travels as ``to_dict()`` (plain data) and the
 driver reads it back with ``from_dict``. The executors, the sweep driver, the records and the
@@ -8,7 +9,9 @@ tracker read attributes, not string keys, and a FAILED outcome is built in one p
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+
+from pipeline.active.episode import RoundRecord
 
 FINISHED, FAILED = "FINISHED", "FAILED"
 TRACEBACK_ARTIFACT = "traceback.txt"
@@ -65,3 +68,37 @@ class JobOutcome:
         if unknown:
             raise ValueError(f"JobOutcome.from_dict: unknown keys {sorted(unknown)}")
         return cls(**data)
+
+
+@dataclass
+class RoundMessage:
+    """What the driver hears of one finished round of a running job: the round's record (the
+    per-candidate scores and probe ids left out), how many rounds the job has (selection rounds +
+    the final evaluation) and the round's images (name -> PNG bytes, when asked for). ``round``
+    counts from 0, as in the records. Across Ray it travels as ``to_dict()``."""
+
+    record: RoundRecord
+    rounds: int
+    images: dict[str, bytes] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, record: RoundRecord, rounds: int) -> "RoundMessage":
+        light = replace(record, scores={}, probes=[])
+        return cls(light, rounds)
+
+    @property
+    def final(self) -> bool:
+        """This is the job's final evaluation (no selection after it)."""
+        return self.record.round + 1 == self.rounds
+
+    @property
+    def seconds(self) -> float:
+        """Training + selection of this round."""
+        return round(self.record.train_seconds + self.record.selection_seconds, 2)
+
+    def to_dict(self) -> dict:
+        return {"record": asdict(self.record), "rounds": self.rounds, "images": dict(self.images)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "RoundMessage":
+        return cls(RoundRecord(**data["record"]), int(data["rounds"]), dict(data.get("images") or {}))

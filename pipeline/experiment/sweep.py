@@ -24,7 +24,7 @@ from pipeline.experiment.executor import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.lock import SweepLock, SweepLocked
-from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome
+from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
@@ -69,11 +69,12 @@ class Progress:
                  f"{_headline(outcome)}")
         self.degraded(job, outcome)
 
-    def round(self, job: dict, message: dict) -> None:
+    def round(self, job: dict, message: RoundMessage) -> None:
         """One line per finished round of a running job."""
-        what = "final" if message["final"] else f"round {message['round'] + 1}/{message['rounds']}"
-        LOG.info(f"[{self.name}] {job_label(job)}: {what}, {message['num_views']} views, "
-                 f"PSNR {message['test_psnr']:.2f} dB, {message['seconds']:.0f} s")
+        rec = message.record
+        what = "final" if message.final else f"round {rec.round + 1}/{message.rounds}"
+        LOG.info(f"[{self.name}] {job_label(job)}: {what}, {rec.num_views} views, "
+                 f"PSNR {rec.test_psnr:.2f} dB, {message.seconds:.0f} s")
 
     def degraded(self, job: dict, outcome: JobOutcome) -> None:
         final = outcome.final
@@ -279,11 +280,11 @@ def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float
             progress.slots = getattr(executor, "slots", 1)
             progress.update(job, outcome)
 
-        def on_round(job: dict, message: dict) -> None:
+        def on_round(job: dict, message: RoundMessage) -> None:
             with critical():
                 track_round(job, message)
 
-        def track_round(job: dict, message: dict) -> None:
+        def track_round(job: dict, message: RoundMessage) -> None:
             progress.round(job, message)
             try:
                 tracker.log_round(job, message)

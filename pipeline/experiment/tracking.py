@@ -14,9 +14,10 @@ import math
 import os
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
-from pipeline.experiment.outcome import JobOutcome
+from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
 
 TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version")
@@ -58,7 +59,7 @@ class NoTracker:
     def start(self, sweep_config: dict, jobs: int) -> None:
         pass
 
-    def log_round(self, job: dict, message: dict) -> None:
+    def log_round(self, job: dict, message: RoundMessage) -> None:
         pass
 
     def log_job(self, job: dict, outcome: JobOutcome) -> str | None:
@@ -176,18 +177,18 @@ class MlflowTracker:
         self._log_params(run.info.run_id, job_params(job))
         return run.info.run_id
 
-    def log_round(self, job: dict, message: dict) -> None:
+    def log_round(self, job: dict, message: RoundMessage) -> None:
         """A round of a running job: its metrics at step = views, in the job's (open) child run."""
         if job["config_hash"] not in self.live:
             self.live[job["config_hash"]] = (self._child_run(job), set())
         run_id, logged = self.live[job["config_hash"]]
-        self._log_metrics(run_id, round_metrics(message))
-        logged.add(message["num_views"])
-        for key, png in (message.get("images") or {}).items():  # MLflow's image series per step
+        self._log_metrics(run_id, round_metrics(asdict(message.record)))
+        logged.add(message.record.num_views)
+        for key, png in message.images.items():  # MLflow's image series per step
             import io
 
             from PIL import Image
-            self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=message["num_views"])
+            self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=message.record.num_views)
 
     def log_job(self, job: dict, outcome: JobOutcome) -> str:
         """Complete the job's child run (the live one, else a new one) with its final state."""
