@@ -503,7 +503,7 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
         ids = np.flatnonzero(seen)
         sums = kernels.sum_rows(row_ids, rows, n, rows)[ids]
         K = cams.Ks[c]
-        intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+        intr = compiled.intrinsics(K)
         out = np.empty((ids.shape[0], width))
         diagonal_kernels.fisher_diagonal(
             ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()), intr,

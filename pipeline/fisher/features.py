@@ -151,9 +151,8 @@ def feature_jacobian_compiled(gaussians: Gaussians, viewmat: Tensor, K: Tensor, 
     layout = param_layout(gaussians, groups)
     degree = active_sh_degree(gaussians, sh_degree)
     arrays = [compiled.to_numpy(v) for v in gaussians.params().values()]
-    intr = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
     geometry, sh_slope, opacity_slope = (torch.from_numpy(x) for x in kernel(
-        *arrays, compiled.to_numpy(viewmat.double()), torch.tensor(intr, dtype=torch.float64).numpy(),
+        *arrays, compiled.to_numpy(viewmat.double()), compiled.intrinsics(K),
         int(width), int(height), int(degree), float(near), compiled.use_threads()))
     columns = [_KERNEL_COLUMNS[g] for g, _ in layout if g in GEOMETRIC]
     geometry = torch.cat([geometry[:, :, c] for c in columns], dim=2) if columns else \

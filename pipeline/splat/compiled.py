@@ -134,6 +134,11 @@ def use_threads() -> int:
     return threads
 
 
+def intrinsics(K: Tensor) -> np.ndarray:
+    """(fx, fy, cx, cy) float64 of a [3, 3] pinhole matrix, as the kernels take them."""
+    return np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+
+
 def to_numpy(x: Tensor) -> np.ndarray:
     """A contiguous NumPy view (or copy) of a CPU tensor, detached."""
     return x.detach().contiguous().numpy()
@@ -252,7 +257,7 @@ def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: 
     from pipeline.splat.project import Projection, active_sh_degree
     sh_degree = active_sh_degree(gaussians, sh_degree)
     view = viewmat.detach().double().contiguous().numpy()
-    intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+    intr = intrinsics(K)
     camera = (view, intr, int(width), int(height), int(sh_degree), float(near))
     means2d, conics, depths, radii, colors, opacities = _CompiledProjection.apply(
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,

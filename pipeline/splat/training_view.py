@@ -121,7 +121,7 @@ def training_view_compiled(gaussians: Gaussians, camera: Cameras, background: Te
     camera = camera.to(device=gaussians.means.device, dtype=gaussians.means.dtype)  # as ``render``
     viewmat, K = camera.viewmats[0], camera.Ks[0]
     view = viewmat.detach().double().contiguous().numpy()
-    intr = np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+    intr = compiled.intrinsics(K)
     cam = (view, intr, int(camera.width), int(camera.height), int(degree), float(settings.near))
     sink = _GradSink()
     image, radii = _CompiledTrainingView.apply(
