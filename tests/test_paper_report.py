@@ -150,3 +150,14 @@ def test_a_studys_protocol_setting_pairs_with_a_presets_rows():
     part = rows_of(pd.concat([study, preset], ignore_index=True), table, datasets)
     v = judge(table.claims[0], part, ["gaussmi", "popgs", "gopre"])
     assert "vs gaussmi +1.50" in v.detail and "n = 6" in v.detail
+
+
+def test_a_cost_claim_prints_its_own_unit_even_before_a_verdict():
+    datasets, tables = load_paper_tables()
+    few = rows_of(records({"gopre": 0.0, "gopre_mc": -0.1}, seeds=[0], sweep="table4_ablation"),
+                  tables["table4_ablation"], datasets)
+    cheaper = Claim("time", "cheaper", row="gopre", reference="gopre_mc", metric="per_candidate_ms")
+    detail = judge(cheaper, few, ["gopre_mc", "gopre"]).detail
+    assert "so far +1.00 ms" in detail and "dB" not in detail
+    memory = Claim("memory", "cheaper", row="gopre", reference="gopre_mc", metric="peak_rss_mb")
+    assert "MB [" in judge(memory, few, ["gopre_mc", "gopre"]).detail

@@ -55,6 +55,14 @@ class PaperTable:
     claims: list[Claim] = field(default_factory=list)
 
 
+METRIC_UNITS = {"psnr": "dB", "per_candidate_ms": "ms", "peak_rss_mb": "MB", "ssim": "", "lpips": ""}
+
+
+def unit_of(metric: str) -> str:
+    """The unit a paired gap of ``metric`` is printed in."""
+    return METRIC_UNITS.get(metric, "")
+
+
 @dataclass(frozen=True)
 class Gap:
     """row - reference over the pairs both finished (for a lower-is-better metric still row -
@@ -65,7 +73,8 @@ class Gap:
     high: float
 
     def text(self, unit: str = "dB") -> str:
-        return f"{self.mean:+.2f} {unit} [{self.low:+.2f}, {self.high:+.2f}], n = {self.n}"
+        unit = f" {unit}" if unit else ""
+        return f"{self.mean:+.2f}{unit} [{self.low:+.2f}, {self.high:+.2f}], n = {self.n}"
 
 
 @dataclass(frozen=True)
@@ -171,7 +180,7 @@ def judge(claim: Claim, part: pd.DataFrame, rows_run: list[str]) -> Verdict:
     if gap is None or gap.n < MIN_PAIRS:
         n = 0 if gap is None else gap.n
         return Verdict(claim, untestable, f"{n} pair(s) of {claim.row} and {ref} (a verdict needs "
-                       f"{MIN_PAIRS})" + (f"; so far {gap.text()}" if gap else ""))
+                       f"{MIN_PAIRS})" + (f"; so far {gap.text(unit_of(claim.metric))}" if gap else ""))
     if claim.kind == "gap":
         ok = gap.high < 0 if claim.paper_gap < 0 else gap.low > 0
         return Verdict(claim, "reproduced" if ok else "not reproduced",
@@ -192,10 +201,9 @@ def judge(claim: Claim, part: pd.DataFrame, rows_run: list[str]) -> Verdict:
         ok = gap.low <= 0
         return Verdict(claim, "reproduced" if ok else "not reproduced", f"{claim.row} - {ref}: {gap.text()}")
     if claim.kind == "cheaper":
-        unit = "ms" if claim.metric == "per_candidate_ms" else "MB"
         ok = gap.high < 0
         return Verdict(claim, "reproduced" if ok else "not reproduced",
-                       f"{claim.row} - {ref} ({claim.metric}): {gap.text(unit)}")
+                       f"{claim.row} - {ref} ({claim.metric}): {gap.text(unit_of(claim.metric))}")
     raise ValueError(f"paper_tables.yaml: unknown claim kind {claim.kind!r}")
 
 
