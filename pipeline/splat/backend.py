@@ -9,6 +9,12 @@ Each fast op has a slow, obviously correct twin that the tests compare it with:
 | compositing | ``rasterize.rasterize`` (``tiles``); ``reference.rasterize_dense`` / ``rasterize_loop`` (``dense``, ``loop``: tiny scenes) | ``compiled.rasterize_compiled`` (``kernels``) |
 | Fisher walk | ``fisher.exact.feature_fisher`` (``ViewWalk``) | ``fisher.exact.feature_fisher_compiled`` |
 | feature Jacobian | ``fisher.features.feature_jacobian`` | ``fisher.features.feature_jacobian_compiled`` |
+| training view (render + both backwards, one node) | ``training_view.training_view_generic`` | ``training_view.training_view_compiled`` |
+| Fisher diagonal per view | ``FeatureJacobian.fisher_diagonal`` of the walk's G | ``fisher.diagonal_kernels.fisher_diagonal`` (``exact.view_fisher_fused`` / ``view_fisher_sparse``) |
+
+The last two are the fused paths: on by default, ``compiled.fused_paths(False)`` turns them off
+(the benchmarks' ``compiled-unfused``); ``training_view.training_view_renderer`` and
+``exact.fused_fisher_available`` resolve them.
 
 The Fisher twins live in ``fisher/`` (which builds on ``splat/``, not the other way round); their
 door is ``fisher.exact.fisher_backend``, resolved from the same name.
