@@ -21,8 +21,8 @@ from pipeline.fisher.exact import FisherSpec, fused_fisher_available
 from pipeline.fisher.features import PARAM_GROUPS
 from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score,
                                        gopre_score_of_fishers, gopre_scores_sparse,
-                                       monte_carlo_score,
-                                       posterior_variance, trace_score, updated_variance)
+                                       monte_carlo_score, posterior_variance, trace_score,
+                                       updated_variance)
 
 SCORES = ("logdet", "trace", "mc")
 GOALS = ("probes", "identity")

@@ -284,6 +284,24 @@ def variance_map(walk: ViewWalk, feature_cov: Tensor) -> Tensor:
 _UPPER = [(a, b) for a in range(6) for b in range(a, 6)]
 
 
+def _compiled_fisher_rows(proj, width: int, height: int, background: Tensor, tile_size: int,
+                          channel_summed: bool, workers: int):
+    """The compiled walk of one view's projection: (row_ids [R], rows [R, 40] float64), one row
+    of Fisher pixel sums per walked intersection (``kernels.fisher_rows``). The walk composites
+    no feature channel: only its final transmittance and walked lengths are needed."""
+    kernels = compiled.load()
+    bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
+                                 proj.depths, width, height, tile_size)
+    colors = compiled.to_numpy(proj.colors)
+    _, final, walked = bins.forward(np.empty((colors.shape[0], 0), dtype=colors.dtype), workers)
+    row_start, row_ids = bins.walked_rows(walked)
+    rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
+                               bins.packed, colors, final, walked,
+                               compiled.to_numpy(background.double()), bins.tiles_x, tile_size,
+                               channel_summed, workers)
+    return row_ids, rows
+
+
 def feature_fisher_compiled(proj, width: int, height: int, background: Tensor,
                             tile_size: int, channel_summed: bool) -> tuple[Tensor, Tensor]:
     """``feature_fisher`` by the compiled walk: (seen [M], G [M, 9, 9] float64).
@@ -291,17 +309,8 @@ def feature_fisher_compiled(proj, width: int, height: int, background: Tensor,
     The kernel sums, per walked intersection, S h h^T, s_c w h and w^2 at each pixel's own offset
     (no moment shifting); the rows are summed per Gaussian in a fixed order, then laid out as G.
     """
-    kernels = compiled.load()
-    bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
-                                 proj.depths, width, height, tile_size)
-    colors = compiled.to_numpy(proj.colors)
-    workers = compiled.use_threads()
-    _, final, walked = bins.forward(colors, workers)
-    row_start, row_ids = bins.walked_rows(walked)
-    rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
-                               bins.packed, colors, final, walked,
-                               compiled.to_numpy(background.double()), bins.tiles_x, tile_size,
-                               channel_summed, workers)
+    row_ids, rows = _compiled_fisher_rows(proj, width, height, background, tile_size,
+                                          channel_summed, compiled.use_threads())
     seen, ids = torch.unique(torch.from_numpy(row_ids), return_inverse=True)
     sums = torch.zeros(seen.numel(), rows.shape[1], dtype=torch.float64).index_add_(
         0, ids, torch.from_numpy(rows))
@@ -488,25 +497,16 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
         with torch.no_grad():
             proj = compiled.project_compiled(g, cams.viewmats[c], cams.Ks[c], cams.width,
                                              cams.height, spec.sh_degree, settings.near)
-        bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
-                                     proj.depths, cams.width, cams.height, settings.tile_size)
-        colors = compiled.to_numpy(proj.colors)
-        # the walk alone (final transmittance, walked lengths): no feature channel to composite
-        _, final, walked = bins.forward(np.empty((n, 0), dtype=colors.dtype), workers)
-        row_start, row_ids = bins.walked_rows(walked)
-        rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
-                                   bins.packed, colors, final, walked,
-                                   compiled.to_numpy(bg.double()), bins.tiles_x, settings.tile_size,
-                                   spec.channel_summed, workers)
+        row_ids, rows = _compiled_fisher_rows(proj, cams.width, cams.height, bg,
+                                              settings.tile_size, spec.channel_summed, workers)
         seen = np.zeros(n, dtype=np.bool_)
         seen[row_ids] = True
         ids = np.flatnonzero(seen)
         sums = kernels.sum_rows(row_ids, rows, n, rows)[ids]
-        K = cams.Ks[c]
-        intr = compiled.intrinsics(K)
         out = np.empty((ids.shape[0], width))
         diagonal_kernels.fisher_diagonal(
-            ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()), intr,
+            ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()),
+            compiled.intrinsics(cams.Ks[c]),
             int(cams.width), int(cams.height), int(degree), float(settings.near), groups,
             spec.channel_summed, out, workers)
         yield SparseFisher(torch.from_numpy(ids), torch.from_numpy(out))

@@ -218,9 +218,18 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
     return image, 1 - final
 
 
-def _projection_kernels():
+def projection_kernels():
+    """The projection kernels module (loaded on first use, like the compositing kernels)."""
     from pipeline.splat import project_kernels
     return project_kernels
+
+
+def kernel_camera(viewmat: Tensor, K: Tensor, width: int, height: int, sh_degree: int,
+                  near: float) -> tuple:
+    """The camera arguments the projection kernels take: (view [4, 4] float64, intrinsics,
+    width, height, SH degree, near)."""
+    view = viewmat.detach().double().contiguous().numpy()
+    return view, intrinsics(K), int(width), int(height), int(sh_degree), float(near)
 
 
 class _CompiledProjection(torch.autograd.Function):
@@ -230,7 +239,7 @@ class _CompiledProjection(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera):
         arrays = tuple(to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0, shN))
-        outs = _projection_kernels().project_forward(*arrays, *camera, use_threads())
+        outs = projection_kernels().project_forward(*arrays, *camera, use_threads())
         ctx.arrays, ctx.camera = arrays, camera
         dtype = means.dtype
         means2d, conics, depths, radii, colors, opacities = (torch.from_numpy(x) for x in outs)
@@ -240,7 +249,7 @@ class _CompiledProjection(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_depths, _g_radii, g_colors, g_opacities):
-        grads = _projection_kernels().project_backward(
+        grads = projection_kernels().project_backward(
             *ctx.arrays, *ctx.camera,
             *(to_numpy(x.double()) for x in (g_means2d, g_conics, g_depths, g_colors, g_opacities)),
             use_threads())
@@ -256,9 +265,7 @@ def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: 
     """
     from pipeline.splat.project import Projection, active_sh_degree
     sh_degree = active_sh_degree(gaussians, sh_degree)
-    view = viewmat.detach().double().contiguous().numpy()
-    intr = intrinsics(K)
-    camera = (view, intr, int(width), int(height), int(sh_degree), float(near))
+    camera = kernel_camera(viewmat, K, width, height, sh_degree, near)
     means2d, conics, depths, radii, colors, opacities = _CompiledProjection.apply(
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
         gaussians.sh0, gaussians.shN, camera)

@@ -59,7 +59,7 @@ class _CompiledTrainingView(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera, background,
                 tile_size, sink):
-        pk = _projection_kernels()
+        pk = compiled.projection_kernels()
         dtype = means.dtype
         np_dtype = compiled.to_numpy(means[:0]).dtype
         workers = compiled.use_threads()
@@ -71,8 +71,8 @@ class _CompiledTrainingView(torch.autograd.Function):
         means2d, conics, depths = (x.astype(np_dtype) for x in (means2d, conics, depths))
         colors, opacities = colors.astype(np_dtype), opacities.astype(np_dtype)
         _, _, width, height, _, _ = camera
-        bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width,
-                                                 height, tile_size)
+        bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width, height,
+                                     tile_size)
         image, final, walked = bins.forward(colors, workers)
         bg = compiled.to_numpy(background)
         alpha = 1 - final.astype(np_dtype)  # as ``rasterize_compiled``: 1 - final, params' dtype
@@ -100,15 +100,10 @@ class _CompiledTrainingView(torch.autograd.Function):
         g_means2d = np.ascontiguousarray(per_gauss[:, 0:2])
         ctx.sink.value = torch.from_numpy(g_means2d)
         f64 = np.float64
-        grads = _projection_kernels().project_backward(
+        grads = compiled.projection_kernels().project_backward(
             *ctx.arrays, *ctx.camera, g_means2d.astype(f64), per_gauss[:, 2:5].astype(f64),
             np.zeros(ctx.n), per_gauss[:, 6:9].astype(f64), per_gauss[:, 5].astype(f64), workers)
         return (*(torch.from_numpy(x).to(ctx.dtype) for x in grads), None, None, None, None)
-
-
-def _projection_kernels():
-    from pipeline.splat import project_kernels
-    return project_kernels
 
 
 def training_view_compiled(gaussians: Gaussians, camera: Cameras, background: Tensor,
@@ -119,10 +114,8 @@ def training_view_compiled(gaussians: Gaussians, camera: Cameras, background: Te
         raise RuntimeError(f"backend 'compiled' cannot load: {compiled.load_error()}")
     degree = active_sh_degree(gaussians, sh_degree)
     camera = camera.to(device=gaussians.means.device, dtype=gaussians.means.dtype)  # as ``render``
-    viewmat, K = camera.viewmats[0], camera.Ks[0]
-    view = viewmat.detach().double().contiguous().numpy()
-    intr = compiled.intrinsics(K)
-    cam = (view, intr, int(camera.width), int(camera.height), int(degree), float(settings.near))
+    cam = compiled.kernel_camera(camera.viewmats[0], camera.Ks[0], camera.width, camera.height,
+                                 degree, settings.near)
     sink = _GradSink()
     image, radii = _CompiledTrainingView.apply(
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
