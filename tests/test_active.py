@@ -47,9 +47,9 @@ def test_episode_end_to_end_records_every_round(gopre_run):
         assert len(r.selected) == 1 and r.selected[0] in r.scores
         assert len(r.scores) == r.candidates and r.per_candidate_ms > 0 and r.peak_rss_mb > 0
     assert result.rounds[-1].iteration == cfg.fit.iterations
-    assert result.final["test_views"] == len(result.test_ids)
-    assert result.final["lpips"] is None and result.final["lpips_status"] == "LPIPS disabled in the config"
-    assert result.final["psnr"] > 12  # far above an empty render of this scene (~7 dB)
+    assert result.final.test_views == len(result.test_ids)
+    assert result.final.lpips is None and result.final.lpips_status == "LPIPS disabled in the config"
+    assert result.final.psnr > 12  # far above an empty render of this scene (~7 dB)
     json.dumps(result.to_dict())  # records are plain JSON
 
 

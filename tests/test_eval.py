@@ -1,4 +1,5 @@
-"""Metrics against direct scikit-image calls; sparsification and AUSE against hand computations."""
+"""Metrics against direct scikit-image calls and 3DGS's SSIM written out; sparsification and AUSE
+against hand computations."""
 
 import math
 
@@ -8,7 +9,7 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from pipeline.eval import (LpipsMetric, ause, evaluate_views, oracle_curve, psnr_value, random_curve,
-                           sparsification_curve, ssim_value)
+                           sparsification_curve, ssim_skimage_value, ssim_value)
 from pipeline.splat.scenes import orbit_cameras, random_scene
 
 
@@ -26,12 +27,49 @@ def test_psnr_matches_scikit_image_and_clamps_the_render():
     assert psnr_value(gt, gt) == math.inf
 
 
-def test_ssim_matches_scikit_image_with_the_3dgs_window():
+def ssim_as_3dgs_writes_it(img1: np.ndarray, img2: np.ndarray) -> float:
+    """3DGS's utils/loss_utils.py ``ssim`` written out in NumPy for [H, W, 3] images: an 11x11
+    Gaussian window (sigma 1.5, normalised), every local statistic a window sum over the image
+    padded with 5 zeros on each side, C1 = 0.01^2, C2 = 0.03^2, the map's mean over all pixels."""
+    g = np.exp(-((np.arange(11) - 5) ** 2) / (2 * 1.5 ** 2))
+    g /= g.sum()
+    w = np.outer(g, g)
+    padded = lambda a: np.pad(a, ((5, 5), (5, 5), (0, 0)))  # noqa: E731  zeros
+    windows = lambda a: np.lib.stride_tricks.sliding_window_view(padded(a), (11, 11), axis=(0, 1))  # noqa: E731
+    local = lambda a: np.einsum("hwcij,ij->hwc", windows(a), w)  # noqa: E731
+    mu1, mu2 = local(img1), local(img2)
+    s11, s22, s12 = local(img1 * img1) - mu1 ** 2, local(img2 * img2) - mu2 ** 2, local(img1 * img2) - mu1 * mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim_map = ((2 * mu1 * mu2 + c1) * (2 * s12 + c2)) / ((mu1 ** 2 + mu2 ** 2 + c1) * (s11 + s22 + c2))
+    return float(ssim_map.mean())
+
+
+def test_ssim_is_3dgs_formula_over_the_whole_zero_padded_image():
+    pred, gt = pair(1, 20)
+    pred = pred[:, :17]  # not square: rows and columns must not be swapped
+    gt = gt[:, :17]
+    assert ssim_value(pred, gt) == pytest.approx(ssim_as_3dgs_writes_it(pred.numpy(), gt.numpy()), abs=1e-12)
+    assert ssim_value(gt, gt) == pytest.approx(1.0)
+    # the render is clamped, as for PSNR
+    assert ssim_value(pred + 3.0, gt) == pytest.approx(ssim_value(torch.ones_like(pred), gt))
+
+
+def test_the_two_ssim_conventions_differ_where_the_border_differs():
+    """Errors only in the first rows: scikit-image's valid-interior mean drops the map's 5 border
+    rows, where they weigh most, so it scores the pair much higher than 3DGS's full-image mean."""
+    _, gt = pair(3, 32)
+    pred = gt.clone()
+    pred[:3] = 1 - pred[:3]
+    assert ssim_skimage_value(pred, gt) > ssim_value(pred, gt) + 0.05
+    assert ssim_value(pred, gt) == pytest.approx(ssim_as_3dgs_writes_it(pred.numpy(), gt.numpy()), abs=1e-12)
+
+
+def test_ssim_skimage_matches_scikit_image_with_the_3dgs_window():
     pred, gt = pair(1, 32)
     direct = structural_similarity(gt.numpy(), pred.numpy(), channel_axis=-1, data_range=1.0,
                                    gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
-    assert ssim_value(pred, gt) == pytest.approx(direct, abs=1e-12)
-    assert ssim_value(gt, gt) == pytest.approx(1.0)
+    assert ssim_skimage_value(pred, gt) == pytest.approx(direct, abs=1e-12)
+    assert ssim_skimage_value(gt, gt) == pytest.approx(1.0)
     # a different window would give a different number: the settings matter
     plain = structural_similarity(gt.numpy(), pred.numpy(), channel_axis=-1, data_range=1.0)
     assert abs(plain - direct) > 1e-4
@@ -62,6 +100,11 @@ def test_evaluate_views_averages_per_view_metrics_and_records_lpips_status():
     m = evaluate_views(g, cams, noisy, torch.ones(3), LpipsMetric())
     assert m.psnr == pytest.approx([psnr_value(images[i], noisy[i]) for i in range(3)])
     assert m.mean()["psnr"] == pytest.approx(np.mean(m.psnr))
+    assert m.ssim == pytest.approx([ssim_as_3dgs_writes_it(render(g, cams[i], torch.ones(3)).rgb[0].clamp(0, 1)
+                                                           .double().numpy(), noisy[i].double().numpy())
+                                    for i in range(3)], abs=1e-6)
+    assert m.ssim_skimage == pytest.approx([ssim_skimage_value(render(g, cams[i], torch.ones(3)).rgb[0], noisy[i])
+                                            for i in range(3)])
     if m.lpips is None:
         assert m.mean()["lpips"] is None and "unavailable" in m.lpips_status
 

@@ -95,11 +95,11 @@ def test_an_episode_whose_rounds_exceed_the_fit_ends_trained(scene_dir):
     assert cfg.epochs_per_view * sum(range(2, 6)) > cfg.fit.iterations
     result = run_episode(load_scene(scene_dir, width=cfg.fit.image_width), cfg)
     last, final = result.rounds[-2], result.rounds[-1]
-    assert result.final["final_phase_iterations"] > 0
-    assert final.iteration - last.iteration == result.final["final_phase_iterations"] >= 20 * 6
-    assert final.iteration == result.final["schedule"]["total"] == 280 + 120
+    assert result.final.final_phase_iterations > 0
+    assert final.iteration - last.iteration == result.final.final_phase_iterations >= 20 * 6
+    assert final.iteration == result.final.schedule["total"] == 280 + 120
     assert final.test_psnr >= last.test_psnr - 0.5, "the final model is worse than the last round's"
-    assert not result.final["degraded"]
+    assert not result.final.degraded
 
 
 def test_the_guard_flags_a_model_reset_just_before_evaluation(scene_dir, monkeypatch):
@@ -114,9 +114,9 @@ def test_the_guard_flags_a_model_reset_just_before_evaluation(scene_dir, monkeyp
     monkeypatch.setattr(episode_module, "views_schedule", no_final_phase)
     cfg = over_budget_config()
     result = run_episode(load_scene(scene_dir, width=cfg.fit.image_width), cfg)
-    assert result.final["final_phase_iterations"] == 1
-    assert result.final["curve_psnr_drop"] > episode_module.DEGRADED_DB
-    assert result.final["degraded"] is True
+    assert result.final.final_phase_iterations == 1
+    assert result.final.curve_psnr_drop > episode_module.DEGRADED_DB
+    assert result.final.degraded is True
 
 
 def test_a_round_that_trains_nothing_is_refused():

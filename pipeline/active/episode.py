@@ -14,7 +14,7 @@ uninterrupted run.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Callable
 
@@ -24,6 +24,7 @@ import torch
 from pipeline.acquisition import SelectionContext, make_strategy
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
+from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
 from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
@@ -37,51 +38,6 @@ from pipeline.splat.gaussians import num_sh_bases
 
 # A final PSNR this far below the last round's, on the same curve views, flags the episode.
 DEGRADED_DB = 3.0
-
-
-@dataclass
-class RoundRecord:
-    """The state after training on ``num_views`` views, and the selection made from it."""
-
-    round: int
-    num_views: int                 # views trained on when evaluated (the curve's x)
-    iteration: int                 # trainer step at evaluation
-    test_psnr: float               # on the curve's test views
-    test_ssim: float
-    num_gaussians: int
-    train_seconds: float           # training since the previous record
-    selected: list[int] = field(default_factory=list)  # pool ids picked after evaluation
-    probes: list[int] = field(default_factory=list)    # probe ids drawn for this round
-    scores: dict[int, float] = field(default_factory=dict)  # every candidate's score
-    candidates: int = 0
-    per_candidate_ms: float = 0.0
-    selection_seconds: float = 0.0
-    fisher_seconds: float = 0.0
-    peak_rss_mb: float = 0.0
-
-
-@dataclass
-class EpisodeResult:
-    scene: str
-    strategy: str
-    seed: int
-    protocol: str
-    initial: list[int]             # ids in the pool split
-    selected: list[int]            # ids in pick order
-    probes: list[list[int]]        # the probe ids drawn at each round
-    pool_split: str                # the scene split the initial, selected and probe ids index
-    test_split: str                # the scene split the test ids index
-    test_ids: list[int]            # ids in the test split (final metrics)
-    curve_ids: list[int]           # ids of the per-round curve's test views
-    rounds: list[RoundRecord]
-    final: dict                    # psnr, ssim, lpips (None when unavailable), lpips_status, per view
-    wall_seconds: float
-    gaussians: Gaussians | None = None  # the final model (not part of ``to_dict``)
-
-    def to_dict(self) -> dict:
-        out = {k: v for k, v in asdict(self).items() if k != "gaussians"}
-        out["rounds"] = [asdict(r) for r in self.rounds]
-        return out
 
 
 def initial_gaussians(scene: Scene, cfg: EpisodeConfig) -> Gaussians:
@@ -159,7 +115,7 @@ class Episode:
         self.records: list[RoundRecord] = []
         self.trainer = self._new_trainer()
         self.done = False
-        self.final: dict = {}
+        self.final: FinalMetrics | None = None
 
     def images(self, split, ids: list[int]) -> torch.Tensor:
         return split.images.stack(ids).to(self.device)  # [len(ids), H, W, 3]
@@ -177,16 +133,18 @@ class Episode:
     def state(self, key: str) -> dict:
         return {"fingerprint": key, "taken": self.taken, "records": [asdict(r) for r in self.records],
                 "trainer": self.trainer.state_dict(), "generator": self.generator.get_state(),
-                "torch_rng": torch.get_rng_state(), "done": self.done, "final": self.final}
+                "torch_rng": torch.get_rng_state(), "done": self.done,
+                "final": self.final.to_dict() if self.final is not None else None}
 
     def restore(self, state: dict) -> None:
         self.taken = list(state["taken"])
-        self.records = [RoundRecord(**r) for r in state["records"]]
+        self.records = [RoundRecord.from_dict(r) for r in state["records"]]
         self.trainer.set_views(self.pool.cameras[self.taken], self.images(self.pool, self.taken))
         self.trainer.load_state_dict(state["trainer"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
-        self.done, self.final = state["done"], state["final"]
+        self.done = state["done"]
+        self.final = FinalMetrics.from_dict(state["final"]) if state["final"] else None
 
     # -- steps --------------------------------------------------------------------------------
     def train(self, iterations: int, progress: bool) -> float:
@@ -195,15 +153,16 @@ class Episode:
                            desc=f"{self.cfg.strategy} {len(self.taken)} views")
         return time.perf_counter() - start
 
-    def evaluate_curve(self) -> tuple[float, float]:
-        m = evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.curve_ids],
-                           self.images(self.test, self.curve_ids), self.background).mean()
-        return m["psnr"], m["ssim"]
+    def evaluate_curve(self) -> dict:
+        """The mean psnr, ssim, ssim_skimage of the curve's test views."""
+        return evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.curve_ids],
+                              self.images(self.test, self.curve_ids), self.background).mean()
 
     def record(self, train_seconds: float) -> RoundRecord:
-        psnr, ssim = self.evaluate_curve()
-        return RoundRecord(len(self.records), len(self.taken), self.trainer.step, psnr, ssim,
-                           len(self.trainer.rendered_gaussians), round(train_seconds, 3))
+        m = self.evaluate_curve()
+        return RoundRecord(len(self.records), len(self.taken), self.trainer.step, m["psnr"], m["ssim"],
+                           len(self.trainer.rendered_gaussians), round(train_seconds, 3),
+                           test_ssim_skimage=m["ssim_skimage"])
 
     def draw_probes(self, round_index: int) -> list[int]:
         """K probe ids for this round, redrawn every round independently of the selection history
@@ -260,13 +219,14 @@ class Episode:
         lpips = LpipsMetric() if self.cfg.lpips else None
         m = evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.views.test_ids],
                            self.images(self.test, self.views.test_ids), self.background, lpips)
-        self.final = {**m.mean(), "lpips_status": m.lpips_status if lpips else "LPIPS disabled in the config",
-                      "test_views": len(self.views.test_ids), "per_view_psnr": m.psnr,
-                      "per_view_ssim": m.ssim, "num_gaussians": len(self.trainer.rendered_gaussians),
-                      "iterations": self.trainer.step, "final_phase_iterations": iterations,
-                      "schedule": self.schedule.to_dict(), "curve_psnr_drop": round(drop, 3),
-                      "degraded": bool(drop > DEGRADED_DB),
-                      "nonfinite_steps": self.trainer.nonfinite_steps}
+        mean = m.mean()
+        self.final = FinalMetrics(
+            mean["psnr"], mean["ssim"], mean["ssim_skimage"], mean["lpips"],
+            m.lpips_status if lpips else "LPIPS disabled in the config", len(self.views.test_ids),
+            m.psnr, m.ssim, m.ssim_skimage, len(self.trainer.rendered_gaussians),
+            iterations=self.trainer.step, final_phase_iterations=iterations,
+            schedule=self.schedule.to_dict(), curve_psnr_drop=round(drop, 3),
+            degraded=bool(drop > DEGRADED_DB), nonfinite_steps=self.trainer.nonfinite_steps)
         self.done = True
 
 

@@ -68,14 +68,14 @@ def run_one(args, backend: str) -> dict:
     return {"scene": str(args.scene), "strategy": args.strategy, "backend": backend,
             "preset": args.preset, "protocol": args.protocol, "seed": args.seed,
             "wall_s": round(time.perf_counter() - start, 1),
-            "final_psnr": round(result.final["psnr"], 3), "final_psnr_full": result.final["psnr"], "final_ssim": round(result.final["ssim"], 4),
-            "final_lpips": result.final["lpips"], "lpips_status": result.final["lpips_status"],
+            "final_psnr": round(result.final.psnr, 3), "final_psnr_full": result.final.psnr, "final_ssim": round(result.final.ssim, 4),
+            "final_lpips": result.final.lpips, "lpips_status": result.final.lpips_status,
             "selected": result.selected, "initial": result.initial,
             "curve": [[r.num_views, round(r.test_psnr, 3)] for r in result.rounds],
             "selection_s": [r.selection_seconds for r in result.rounds[:-1]],
             "selection_total_s": round(sum(r.selection_seconds for r in result.rounds), 1),
             "train_s": round(sum(r.train_seconds for r in result.rounds), 1),
-            "num_gaussians": result.final["num_gaussians"], "threads": torch.get_num_threads(),
+            "num_gaussians": result.final.num_gaussians, "threads": torch.get_num_threads(),
             "load_avg_1m": round(machine_load(), 2)}
 
 

@@ -1,11 +1,15 @@
 """Image metrics as the 3DGS evaluation computes them, per view, then averaged over views.
 
 - PSNR: 10 log10(1 / MSE) of the render clamped to [0, 1] against the ground truth, per view.
-- SSIM: scikit-image ``structural_similarity`` with the settings of Wang et al. that 3DGS uses:
-  an 11x11 Gaussian window with sigma 1.5 (``gaussian_weights=True, sigma=1.5``), K1 = 0.01,
-  K2 = 0.03, population covariances (``use_sample_covariance=False``), data range 1, channels
-  averaged. One difference remains: scikit-image averages over the valid interior (it crops
-  (win - 1) / 2 = 5 px at each border), 3DGS pads with zeros and averages over all pixels.
+- SSIM: as 3DGS's ``utils/loss_utils.ssim`` computes it (and the papers that evaluate with it):
+  an 11x11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03, local means and (population)
+  variances by convolution with zero padding, the SSIM map averaged over every pixel and channel
+  (``ssim_value``; the formula is the training loss's, ``pipeline.fit.losses.ssim_map``, here in
+  float64). One difference remains: 3DGS scores renders it saved as 8-bit PNGs; we score the
+  float render clamped to [0, 1] (as for PSNR).
+- SSIM (scikit-image), a second column: ``structural_similarity`` with the same window and
+  constants (``SSIM_SETTINGS``), which averages over the valid interior only (it crops
+  (win - 1) / 2 = 5 px at each border). At 48-64 px the two differ by a few hundredths.
 - LPIPS: the ``lpips`` package with the VGG backbone (as 3DGS and FisherRF report; gsplat's
   default is AlexNet). Its backbone weights come from torchvision's pretrained VGG16; when the
   package, torchvision or the weights are missing, LPIPS is *unavailable*: recorded as ``None``
@@ -23,8 +27,11 @@ from skimage.metrics import structural_similarity
 from torch import Tensor
 
 from pipeline.cameras import Cameras
+from pipeline.fit.losses import ssim_map
 from pipeline.splat import Gaussians, RenderSettings, render
 
+SSIM_CONVENTION = ("ssim: 3DGS's (zero-padded windows, mean over all pixels); "
+                   "ssim_skimage: scikit-image's structural_similarity (valid interior)")
 SSIM_SETTINGS = {"gaussian_weights": True, "sigma": 1.5, "win_size": 11, "K1": 0.01, "K2": 0.03,
                  "use_sample_covariance": False, "data_range": 1.0, "channel_axis": -1}
 
@@ -42,7 +49,17 @@ def psnr_value(pred: Tensor, gt: Tensor) -> float:
 
 
 def ssim_value(pred: Tensor, gt: Tensor) -> float:
-    """SSIM of one view (settings in ``SSIM_SETTINGS``): pred, gt [H, W, 3] in [0, 1]."""
+    """3DGS's SSIM of one view (zero-padded windows, the mean over all pixels and channels), in
+    float64: pred, gt [H, W, 3] in [0, 1] (pred is clamped)."""
+    _check_pair(pred, gt)
+    a = pred.detach().clamp(0, 1).double().cpu()
+    b = gt.detach().double().cpu()
+    return float(ssim_map(a, b).mean())
+
+
+def ssim_skimage_value(pred: Tensor, gt: Tensor) -> float:
+    """scikit-image's SSIM of one view (settings in ``SSIM_SETTINGS``; the valid interior's
+    mean): pred, gt [H, W, 3] in [0, 1]."""
     _check_pair(pred, gt)
     a = pred.detach().clamp(0, 1).double().cpu().numpy()
     b = gt.detach().double().cpu().numpy()
@@ -78,13 +95,15 @@ class ViewMetrics:
     """Per-view metrics of a set of test views; ``lpips`` is None when unavailable."""
 
     psnr: list[float]
-    ssim: list[float]
+    ssim: list[float]                 # 3DGS's convention
+    ssim_skimage: list[float]
     lpips: list[float] | None = None
     lpips_status: str = "not computed"
     extra: dict = field(default_factory=dict)
 
     def mean(self) -> dict:
         out = {"psnr": float(np.mean(self.psnr)), "ssim": float(np.mean(self.ssim)),
+               "ssim_skimage": float(np.mean(self.ssim_skimage)),
                "lpips": float(np.mean(self.lpips)) if self.lpips is not None else None}
         return out
 
@@ -96,14 +115,15 @@ def evaluate_views(gaussians: Gaussians, cameras: Cameras, images: Tensor, backg
     """Render each camera [C] and compare with ``images`` [C, H, W, 3]."""
     if images.shape[0] != len(cameras):
         raise ValueError(f"{images.shape[0]} images for {len(cameras)} cameras")
-    psnrs, ssims, lp = [], [], []
+    psnrs, ssims, skimage, lp = [], [], [], []
     for i in range(len(cameras)):
         pred = render(gaussians, cameras[i], background, settings=settings).rgb[0].clamp(0, 1)
         psnrs.append(psnr_value(pred, images[i]))
         ssims.append(ssim_value(pred, images[i]) if ssim else float("nan"))
+        skimage.append(ssim_skimage_value(pred, images[i]) if ssim else float("nan"))
         if lpips is not None and lpips.available:
             lp.append(lpips(pred, images[i]))
     if lpips is None:
-        return ViewMetrics(psnrs, ssims)
+        return ViewMetrics(psnrs, ssims, skimage)
     status = "vgg" if lpips.available else lpips.reason
-    return ViewMetrics(psnrs, ssims, lp if lpips.available else None, status)
+    return ViewMetrics(psnrs, ssims, skimage, lp if lpips.available else None, status)

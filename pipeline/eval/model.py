@@ -7,7 +7,7 @@ from pathlib import Path
 
 from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolConfig, build_protocol
-from pipeline.eval.metrics import LpipsMetric, evaluate_views
+from pipeline.eval.metrics import SSIM_CONVENTION, LpipsMetric, evaluate_views
 from pipeline.splat import ply
 
 
@@ -28,5 +28,6 @@ def evaluate_model(model: Path, scene_path: Path, protocol: str = "global", widt
             "test_split": views.test_split, "test_views": len(ids), "width": cameras.width,
             "height": cameras.height, "num_gaussians": len(gaussians), "sh_degree": gaussians.sh_degree,
             **m.mean(), "lpips_status": m.lpips_status if lpips else "LPIPS not requested",
-            "ssim_convention": "scikit-image structural_similarity (valid interior), as the episodes",
-            "per_view": [{"id": i, "psnr": p, "ssim": s} for i, p, s in zip(ids, m.psnr, m.ssim)]}
+            "ssim_convention": SSIM_CONVENTION,
+            "per_view": [{"id": i, "psnr": p, "ssim": s, "ssim_skimage": k}
+                         for i, p, s, k in zip(ids, m.psnr, m.ssim, m.ssim_skimage)]}

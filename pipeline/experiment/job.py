@@ -106,8 +106,8 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
     result = run_episode(scene, cfg, JobFolder(folder).checkpoint_dir, on_round=on_round, on_selection=on_selection,
                          device=job["execution"]["device"], on_resume=on_resume)
-    if result.final["degraded"]:
-        _log(folder, f"warning: final PSNR {result.final['curve_psnr_drop']:.2f} dB below the last "
+    if result.final.degraded:
+        _log(folder, f"warning: final PSNR {result.final.curve_psnr_drop:.2f} dB below the last "
                      "round's on the same views (degraded)")
     views = scene.split(result.test_split)
     shown = result.test_ids[:job["renders"]]

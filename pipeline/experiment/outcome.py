@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
-from pipeline.active.episode import RoundRecord
+from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 
 FINISHED, FAILED = "FINISHED", "FAILED"
 TRACEBACK_ARTIFACT = "traceback.txt"
@@ -55,9 +55,17 @@ class JobOutcome:
         return self.errors[-1] if self.errors else ""
 
     @property
-    def final(self) -> dict:
-        """The result's final metrics (``{}`` for a FAILED outcome or a result without them)."""
-        return (self.result or {}).get("final") or {}
+    def episode(self) -> EpisodeResult | None:
+        """The typed episode result (None for a FAILED outcome or an uncertainty job's result)."""
+        if self.result is None or "rounds" not in self.result:
+            return None
+        return EpisodeResult.from_dict(self.result)
+
+    @property
+    def final(self) -> FinalMetrics | None:
+        """The episode's final metrics (None for a FAILED outcome or an uncertainty job)."""
+        episode = self.episode
+        return episode.final if episode is not None else None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -101,4 +109,4 @@ class RoundMessage:
 
     @classmethod
     def from_dict(cls, data: dict) -> "RoundMessage":
-        return cls(RoundRecord(**data["record"]), int(data["rounds"]), dict(data.get("images") or {}))
+        return cls(RoundRecord.from_dict(data["record"]), int(data["rounds"]), dict(data.get("images") or {}))

@@ -2,7 +2,9 @@
 
 Rows, by ``kind``:
 - ``round``: one per episode round (``num_views`` = views trained on; the PSNR-vs-views curve).
-- ``final``: one per job: final metrics on every test view, status, selection cost, run id,
+- ``final``: one per job: final metrics on every test view (``ssim`` is 3DGS's, ``ssim_skimage``
+  scikit-image's, ``metrics_version`` and ``ssim_source`` as in ``pipeline.active.results``),
+  status, selection cost, run id,
   ``degraded`` (the final model scored more than 3 dB below the last round on the same views),
   ``curve_psnr_drop`` (that difference) and ``nonfinite_steps`` (training steps skipped because
   their loss or gradient was not finite).
@@ -23,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.active.results import EpisodeResult, FinalMetrics
 from pipeline.experiment.outcome import JobOutcome
 
 RECORDS = "records.parquet"
@@ -37,27 +40,30 @@ def identity(job: dict, outcome: JobOutcome, run_id: str | None) -> dict:
             "axes": json.dumps(job["axes"], sort_keys=True), "code_version": job.get("code_version")}
 
 
-def episode_rows(base: dict, result: dict, seconds: float) -> list[dict]:
-    rounds = result["rounds"]
-    rows = [{**base, "kind": "round", "num_views": r["num_views"], "iteration": r["iteration"],
-             "psnr": r["test_psnr"], "ssim": r["test_ssim"], "num_gaussians": r["num_gaussians"],
-             "per_candidate_ms": r["per_candidate_ms"] or None,
-             "selection_seconds": r["selection_seconds"] or None, "peak_rss_mb": r["peak_rss_mb"],
-             "selected": json.dumps(r["selected"])} for r in rounds]
-    picks = [r for r in rounds if r["selected"]]
-    final = result["final"]
-    rows.append({**base, "kind": "final", "num_views": rounds[-1]["num_views"] if rounds else None,
-                 "psnr": final["psnr"], "ssim": final["ssim"], "lpips": final["lpips"],
-                 "lpips_status": final["lpips_status"], "test_views": final["test_views"],
-                 "num_gaussians": final["num_gaussians"], "wall_seconds": seconds,
-                 "per_candidate_ms": float(np.mean([r["per_candidate_ms"] for r in picks])) if picks else None,
-                 "selection_seconds": float(np.mean([r["selection_seconds"] for r in picks])) if picks else None,
-                 "peak_rss_mb": max((r["peak_rss_mb"] for r in rounds), default=None),
-                 "selected": json.dumps(result["selected"]), "initial": json.dumps(result["initial"]),
-                 "degraded": bool(final.get("degraded", False)),
-                 "curve_psnr_drop": final.get("curve_psnr_drop"),
-                 "nonfinite_steps": int(final.get("nonfinite_steps", 0))})
+def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dict]:
+    rounds = episode.rounds
+    rows = [{**base, "kind": "round", "num_views": r.num_views, "iteration": r.iteration,
+             "psnr": r.test_psnr, "ssim": r.test_ssim, "ssim_skimage": r.test_ssim_skimage,
+             "num_gaussians": r.num_gaussians, "per_candidate_ms": r.per_candidate_ms or None,
+             "selection_seconds": r.selection_seconds or None, "peak_rss_mb": r.peak_rss_mb,
+             "selected": json.dumps(r.selected)} for r in rounds]
+    picks = [r for r in rounds if r.selected]
+    rows.append({**base, "kind": "final", "num_views": rounds[-1].num_views if rounds else None,
+                 **final_columns(episode.final), "wall_seconds": seconds,
+                 "per_candidate_ms": float(np.mean([r.per_candidate_ms for r in picks])) if picks else None,
+                 "selection_seconds": float(np.mean([r.selection_seconds for r in picks])) if picks else None,
+                 "peak_rss_mb": max((r.peak_rss_mb for r in rounds), default=None),
+                 "selected": json.dumps(episode.selected), "initial": json.dumps(episode.initial)})
     return rows
+
+
+def final_columns(final: FinalMetrics) -> dict:
+    """The final row's metric columns (one place: adding a final metric adds it here)."""
+    return {"psnr": final.psnr, "ssim": final.ssim, "ssim_skimage": final.ssim_skimage,
+            "lpips": final.lpips, "lpips_status": final.lpips_status, "test_views": final.test_views,
+            "num_gaussians": final.num_gaussians, "degraded": bool(final.degraded),
+            "curve_psnr_drop": final.curve_psnr_drop, "nonfinite_steps": int(final.nonfinite_steps),
+            "metrics_version": final.metrics_version, "ssim_source": final.ssim_source}
 
 
 def uncertainty_rows(base: dict, result: dict, seconds: float) -> list[dict]:
@@ -75,8 +81,10 @@ def job_rows(job: dict, outcome: JobOutcome, run_id: str | None) -> list[dict]:
     if not outcome.finished:
         return [{**base, "kind": "final", "error": outcome.traceback[-2000:],
                  "attempts": outcome.attempts}]
-    rows_for = uncertainty_rows if job["kind"] == "uncertainty" else episode_rows
-    rows = rows_for(base, outcome.result, outcome.seconds)
+    if job["kind"] == "uncertainty":
+        rows = uncertainty_rows(base, outcome.result, outcome.seconds)
+    else:
+        rows = episode_rows(base, outcome.episode, outcome.seconds)
     for row in rows:
         row["attempts"] = outcome.attempts
     return rows
@@ -140,17 +148,24 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "setting": tags.get("setting", ""), "axes": params.get("axes", "{}"),
             "code_version": tags.get("code_version"),
             "job_index": int(tags["job_index"]) if "job_index" in tags else None}
-    final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": metrics.get("final_ssim"),
+    version = int(tags.get("metrics_version", 1))  # version 1: final_ssim was scikit-image's
+    ssim, ssim_skimage = ((metrics.get("final_ssim"), metrics.get("final_ssim_skimage")) if version >= 2
+                          else (None, metrics.get("final_ssim")))
+    final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": ssim,
+             "ssim_skimage": ssim_skimage, "metrics_version": version,
              "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
              "lpips_status": tags.get("lpips_status"), "degraded": tags.get("degraded") == "true",
              "curve_psnr_drop": metrics.get("curve_psnr_drop"),
              "nonfinite_steps": metrics.get("nonfinite_steps")}
     history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
-               for key in ("test_psnr", "test_ssim", "per_candidate_ms", "selection_seconds")}
+               for key in ("test_psnr", "test_ssim", "test_ssim_skimage", "per_candidate_ms", "selection_seconds")}
+    if version < 2:
+        history["test_ssim_skimage"], history["test_ssim"] = history["test_ssim"], {}
     picks = list(history["per_candidate_ms"].values())
     final["per_candidate_ms"] = sum(picks) / len(picks) if picks else None
     sel = list(history["selection_seconds"].values())
     final["selection_seconds"] = sum(sel) / len(sel) if sel else None
     rounds = [{**base, "kind": "round", "num_views": step, "psnr": value,
-               "ssim": history["test_ssim"].get(step)} for step, value in sorted(history["test_psnr"].items())]
+               "ssim": history["test_ssim"].get(step), "ssim_skimage": history["test_ssim_skimage"].get(step)}
+              for step, value in sorted(history["test_psnr"].items())]
     return rounds + [final]

@@ -78,9 +78,9 @@ class Progress:
 
     def degraded(self, job: dict, outcome: JobOutcome) -> None:
         final = outcome.final
-        if final.get("degraded"):
+        if final is not None and final.degraded:
             LOG.warning(f"[{self.name}] warning: {job_label(job)} ended on a degraded model: final PSNR "
-                        f"{final['curve_psnr_drop']:.2f} dB below its last round on the same views "
+                        f"{final.curve_psnr_drop:.2f} dB below its last round on the same views "
                         "(flagged in the records, MLflow tag degraded=true)")
 
 

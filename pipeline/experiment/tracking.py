@@ -14,9 +14,9 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import asdict
 from pathlib import Path
 
+from pipeline.active.results import RoundRecord
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
 
@@ -39,14 +39,15 @@ def job_params(job: dict) -> dict[str, str]:
                     if k not in ("execution", "config_hash", "sweep", "code_version")})
 
 
-def round_metrics(r: dict) -> list[tuple[str, float, int]]:
-    """The metrics of one round record (or live round message), at step = views trained on."""
-    step = r["num_views"]
-    out = [("test_psnr", r["test_psnr"], step), ("test_ssim", r["test_ssim"], step),
-           ("num_gaussians", r["num_gaussians"], step)]
-    if r["selected"]:
-        out += [("per_candidate_ms", r["per_candidate_ms"], step),
-                ("selection_seconds", r["selection_seconds"], step)]
+def round_metrics(r: RoundRecord) -> list[tuple[str, float, int]]:
+    """The metrics of one round record (or live round message), at step = views trained on
+    (``test_ssim`` is 3DGS's SSIM, ``test_ssim_skimage`` scikit-image's; None is not logged)."""
+    step = r.num_views
+    out = [("test_psnr", r.test_psnr, step), ("test_ssim", r.test_ssim, step),
+           ("test_ssim_skimage", r.test_ssim_skimage, step), ("num_gaussians", r.num_gaussians, step)]
+    if r.selected:
+        out += [("per_candidate_ms", r.per_candidate_ms, step),
+                ("selection_seconds", r.selection_seconds, step)]
     return out
 
 
@@ -182,7 +183,7 @@ class MlflowTracker:
         if job["config_hash"] not in self.live:
             self.live[job["config_hash"]] = (self._child_run(job), set())
         run_id, logged = self.live[job["config_hash"]]
-        self._log_metrics(run_id, round_metrics(asdict(message.record)))
+        self._log_metrics(run_id, round_metrics(message.record))
         logged.add(message.record.num_views)
         for key, png in message.images.items():  # MLflow's image series per step
             import io
@@ -195,10 +196,10 @@ class MlflowTracker:
         run_id, logged = self.live.pop(job["config_hash"], None) or (self._child_run(job), set())
         tags = {"attempts": str(outcome.attempts)}
         final = outcome.final
-        if "degraded" in final:  # the final model fell > 3 dB below its last round (see records)
-            tags["degraded"] = str(bool(final["degraded"])).lower()
-        if "lpips_status" in final:  # why LPIPS is (un)available, read back by records_from_mlflow
-            tags["lpips_status"] = str(final["lpips_status"])[:5000]
+        if final is not None:
+            tags["degraded"] = str(bool(final.degraded)).lower()  # > 3 dB below its last round (see records)
+            tags["lpips_status"] = str(final.lpips_status)[:5000]  # why LPIPS is (un)available
+            tags["metrics_version"] = str(final.metrics_version)  # what final_ssim means (active.results)
         if job.get("index") is not None:  # the config's job order, which the report keeps
             tags["job_index"] = str(job["index"])
         for key, value in tags.items():
@@ -216,14 +217,13 @@ class MlflowTracker:
         result = outcome.result
         if job["kind"] == "uncertainty":
             return [(f"ause_{name}", v, 0) for name, v in result["ause"].items()]
-        out = [m for r in result["rounds"] if r["num_views"] not in logged for m in round_metrics(r)]
-        final = result["final"]
-        out += [("final_psnr", final["psnr"], 0), ("final_ssim", final["ssim"], 0),
-                ("wall_seconds", outcome.seconds, 0),
-                ("curve_psnr_drop", final.get("curve_psnr_drop"), 0),
-                ("nonfinite_steps", final.get("nonfinite_steps", 0), 0)]
-        if final["lpips"] is not None:
-            out.append(("final_lpips", final["lpips"], 0))
+        episode = outcome.episode
+        out = [m for r in episode.rounds if r.num_views not in logged for m in round_metrics(r)]
+        final = episode.final
+        out += [("final_psnr", final.psnr, 0), ("final_ssim", final.ssim, 0),
+                ("final_ssim_skimage", final.ssim_skimage, 0), ("wall_seconds", outcome.seconds, 0),
+                ("curve_psnr_drop", final.curve_psnr_drop, 0), ("nonfinite_steps", final.nonfinite_steps, 0),
+                ("final_lpips", final.lpips, 0)]
         return out
 
     def _log_artifacts(self, run_id: str, job: dict, outcome: JobOutcome) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from pipeline.report import figures
@@ -30,7 +31,42 @@ def load_records(source: str | Path) -> pd.DataFrame:
     frame = pd.read_parquet(path)
     if frame.empty or "kind" not in frame:
         raise ValueError(f"{path}: the records file has no rows")
-    return in_config_order(frame)
+    return in_config_order(with_metrics_version(frame))
+
+
+def with_metrics_version(frame: pd.DataFrame) -> pd.DataFrame:
+    """Rows recorded before metrics version 2 (no ``metrics_version``; see
+    ``pipeline.active.results``) had scikit-image's SSIM under ``ssim``: it moves to
+    ``ssim_skimage`` and their ``ssim`` (3DGS's) is missing, so one column never mixes the two."""
+    frame = frame.copy()
+    if "metrics_version" not in frame:
+        frame["metrics_version"] = np.nan
+    if "ssim_skimage" not in frame:
+        frame["ssim_skimage"] = np.nan
+    if "ssim" not in frame:
+        return frame
+    episode = frame["kind"].isin(["final", "round"]) & (frame.get("job_kind", "episode") == "episode")
+    final_v1 = episode & (frame["kind"] == "final") & frame["metrics_version"].isna()
+    # a round row carries no version: a version-2 one always has its scikit-image SSIM beside it
+    legacy = final_v1 | (episode & (frame["kind"] == "round") & frame["ssim_skimage"].isna())
+    ssim = pd.to_numeric(frame["ssim"], errors="coerce")
+    frame["ssim_skimage"] = pd.to_numeric(frame["ssim_skimage"], errors="coerce").where(~legacy, ssim)
+    frame["ssim"] = ssim.where(~legacy)
+    frame["metrics_version"] = pd.to_numeric(frame["metrics_version"], errors="coerce").where(~final_v1, 1)
+    return frame
+
+
+def missing_ssim_note(final: pd.DataFrame) -> str | None:
+    """The note for a table whose SSIM (3DGS's) is missing for some episodes."""
+    if "ssim" not in final:
+        return None
+    missing = int(final["ssim"].isna().sum())
+    if not missing:
+        return None
+    return (f"SSIM is 3DGS's (zero-padded windows, the mean over all pixels); {missing} of {len(final)} "
+            "episodes were recorded before it (metrics version 1) and are left out of its cells; "
+            "their scikit-image SSIM is in the records as ssim_skimage. `gopre-eval --sweep DIR` "
+            "fills it in from each job's final model.")
 
 
 EPISODE_KEY = ["scene", "method", "protocol", "setting", "seed"]
@@ -111,6 +147,9 @@ def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None
         table = build_table(final.rename(columns={"method": "Method"}), title, "Method", "dataset",
                             ["psnr", "psnr_auc", "ssim", "lpips"], methods)
         tables.append(table)
+    note = missing_ssim_note(final)
+    if note:
+        table.notes.append(note)
     bad = degraded_jobs(final)
     if bad:
         table.notes.append(f"{len(bad)} job(s) in these cells ended on a degraded model (final PSNR "

@@ -17,12 +17,12 @@ from pathlib import Path
 import torch
 
 from pipeline.active.config import EpisodeConfig
-from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.scene import Scene, Split
 from pipeline.experiment.build import episode_config
 from pipeline.experiment.export import from_checkpoint
 from pipeline.experiment.layout import JobFolder, SweepFolder
+from pipeline.experiment.scene_lookup import scene_of
 from pipeline.splat import Gaussians, ply
 
 
@@ -115,33 +115,6 @@ def job_entry(folder: Path) -> dict:
                 raise ValueError(f"{folder}: a {job['kind']!r} job, not an episode")
             return job
     raise ValueError(f"{folder}: no job with config hash {folder.name!r} in {listing}")
-
-
-def scene_candidates(job: dict, result: dict | None, scene: str | None = None,
-                     data_root: str | None = None) -> list[str]:
-    """Where the job's scene may be: ``scene`` (given), under ``data_root`` (as <root>/<scene> or
-    <root>/<dataset folder>/<scene>, for a sweep copied to another machine), then where it ran."""
-    if scene is not None:
-        return [str(scene)]
-    tried = []
-    if data_root is not None:
-        ran = Path(job["scene_path"])
-        tried += [str(Path(data_root) / ran.name), str(Path(data_root) / ran.parent.name / ran.name)]
-    if result and result.get("scene"):
-        tried.append(result["scene"])
-    return tried + [job["scene_path"]]
-
-
-def scene_of(job: dict, result: dict | None, scene: str | None = None,
-             data_root: str | None = None) -> Scene:
-    """The scene the job ran on, read at the episode's image width."""
-    width = episode_config(job).fit.image_width
-    tried = scene_candidates(job, result, scene, data_root)
-    for path in tried:
-        if Path(path).exists():
-            return load_scene(path, width=width)
-    raise ValueError(f"the scene of job {job['config_hash']} is not here: tried {', '.join(tried)} "
-                     "(pass --scene PATH, or --data-root for a sweep copied from another machine)")
 
 
 def load_folder(folder: Path, scene: str | None = None, data_root: str | None = None) -> EpisodeRun:

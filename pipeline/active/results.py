@@ -1,0 +1,127 @@
+"""What an episode returns: its rounds, its final metrics and the whole result, as typed records
+that travel as plain data (``to_dict`` / ``from_dict``) across Ray, into ``result.json`` and the
+checkpoint, and back.
+
+Metrics versions (``FinalMetrics.metrics_version``; a record without the field is version 1):
+- 1: ``ssim`` was scikit-image's ``structural_similarity`` (the mean over the valid interior,
+  5 px cropped at each border).
+- 2: ``ssim`` is the zero-padded full-image mean that 3DGS and the papers report
+  (``pipeline.eval.metrics.ssim_value``); scikit-image's is ``ssim_skimage``.
+A version-1 record is read as version 2 with its SSIM under ``ssim_skimage`` and ``ssim`` missing
+(None): the two conventions are never mixed under one name. ``gopre-eval --sweep DIR`` fills the
+missing values from each finished job's final model (``ssim_source`` then says so); the per-round
+curve SSIM of such a record stays missing (its round models are not kept).
+Nothing a job selects or trains depends on the version, so the config hash does not include it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+from pipeline.splat import Gaussians
+
+METRICS_VERSION = 2
+
+
+def _check_keys(cls, data: dict) -> None:
+    unknown = set(data) - {f.name for f in fields(cls)}
+    if unknown:
+        raise ValueError(f"{cls.__name__}.from_dict: unknown keys {sorted(unknown)}")
+
+
+@dataclass
+class RoundRecord:
+    """The state after training on ``num_views`` views, and the selection made from it."""
+
+    round: int
+    num_views: int                 # views trained on when evaluated (the curve's x)
+    iteration: int                 # trainer step at evaluation
+    test_psnr: float               # on the curve's test views
+    test_ssim: float | None        # 3DGS's SSIM (None in a version-1 record)
+    num_gaussians: int
+    train_seconds: float           # training since the previous record
+    selected: list[int] = field(default_factory=list)  # pool ids picked after evaluation
+    probes: list[int] = field(default_factory=list)    # probe ids drawn for this round
+    scores: dict[int, float] = field(default_factory=dict)  # every candidate's score
+    candidates: int = 0
+    per_candidate_ms: float = 0.0
+    selection_seconds: float = 0.0
+    fisher_seconds: float = 0.0
+    peak_rss_mb: float = 0.0
+    test_ssim_skimage: float | None = None  # scikit-image's SSIM of the same views
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "RoundRecord":
+        _check_keys(cls, data)
+        if "test_ssim_skimage" not in data:  # version 1: its SSIM was scikit-image's
+            data = {**data, "test_ssim_skimage": data["test_ssim"], "test_ssim": None}
+        scores = {int(k): v for k, v in (data.get("scores") or {}).items()}  # JSON keys are strings
+        return cls(**{**data, "scores": scores})
+
+
+@dataclass
+class FinalMetrics:
+    """The final model's metrics on every test view of the protocol (means, then per view), its
+    size and training, and the degradation flag (see ``pipeline.active.episode``)."""
+
+    psnr: float
+    ssim: float | None                       # 3DGS's SSIM (None: a version-1 record not filled)
+    ssim_skimage: float | None               # scikit-image's SSIM
+    lpips: float | None                      # None when unavailable or disabled
+    lpips_status: str
+    test_views: int
+    per_view_psnr: list[float]
+    per_view_ssim: list[float] | None
+    per_view_ssim_skimage: list[float] | None
+    num_gaussians: int
+    iterations: int = 0
+    final_phase_iterations: int = 0
+    schedule: dict = field(default_factory=dict)
+    curve_psnr_drop: float = 0.0
+    degraded: bool = False
+    nonfinite_steps: int = 0
+    metrics_version: int = METRICS_VERSION
+    ssim_source: str = "episode"             # or "model.ply": filled in afterwards from the final model
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "FinalMetrics":
+        _check_keys(cls, data)
+        if "metrics_version" not in data:  # version 1: its SSIM was scikit-image's
+            data = {**data, "ssim_skimage": data.get("ssim"), "ssim": None,
+                    "per_view_ssim_skimage": data.get("per_view_ssim"), "per_view_ssim": None,
+                    "metrics_version": 1, "ssim_source": "missing (version 1)"}
+        return cls(**data)
+
+
+@dataclass
+class EpisodeResult:
+    scene: str
+    strategy: str
+    seed: int
+    protocol: str
+    initial: list[int]             # ids in the pool split
+    selected: list[int]            # ids in pick order
+    probes: list[list[int]]        # the probe ids drawn at each round
+    pool_split: str                # the scene split the initial, selected and probe ids index
+    test_split: str                # the scene split the test ids index
+    test_ids: list[int]            # ids in the test split (final metrics)
+    curve_ids: list[int]           # ids of the per-round curve's test views
+    rounds: list[RoundRecord]
+    final: FinalMetrics
+    wall_seconds: float
+    gaussians: Gaussians | None = None  # the final model (not part of ``to_dict``)
+
+    def to_dict(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("gaussians", "rounds", "final")}
+        out["rounds"] = [asdict(r) for r in self.rounds]
+        out["final"] = self.final.to_dict()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "EpisodeResult":
+        _check_keys(cls, data)
+        return cls(**{**data, "rounds": [RoundRecord.from_dict(r) for r in data["rounds"]],
+                      "final": FinalMetrics.from_dict(data["final"])})

@@ -1,0 +1,131 @@
+"""Fill in what a finished sweep's records lack, from each job's final model: the 3DGS SSIM of
+episodes recorded before metrics version 2 (``pipeline.active.results``).
+
+For each finished episode job whose ``artifacts/result.json`` is version 1, the final model
+``artifacts/model.ply`` is rendered on the episode's own test views, and:
+- its per-view PSNR must equal the recorded one (to ``PSNR_TOLERANCE_DB``), and its scikit-image
+  SSIM the recorded SSIM (to ``SSIM_TOLERANCE``), else the job is refused and left as it was:
+  the model is not the one that was scored;
+- then ``ssim`` (3DGS's) and its per-view values are written, scikit-image's stay under
+  ``ssim_skimage``, ``metrics_version`` becomes 2 and ``ssim_source`` "model.ply", in
+  ``result.json`` (atomically) and in the job's rows of ``records.parquet``. The per-round curve
+  SSIM stays missing (round models are not kept). MLflow runs are not touched: their
+  ``final_ssim`` keeps its version-1 meaning, which ``records_from_mlflow`` reads as such.
+Nothing is trained or selected; a second run finds nothing to do.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from pipeline.active.results import METRICS_VERSION, EpisodeResult
+from pipeline.eval.metrics import evaluate_views
+from pipeline.experiment.layout import JobFolder, SweepFolder
+from pipeline.experiment.records import RecordsFile
+from pipeline.experiment.scene_lookup import scene_of
+from pipeline.splat import ply
+
+PSNR_TOLERANCE_DB = 1e-6
+SSIM_TOLERANCE = 1e-9
+
+
+@dataclass
+class FillReport:
+    filled: list[str] = field(default_factory=list)      # config hashes
+    current: list[str] = field(default_factory=list)     # already version 2
+    refused: dict[str, str] = field(default_factory=dict)  # config hash -> why
+
+    def summary(self) -> str:
+        out = f"{len(self.filled)} filled, {len(self.current)} already current, {len(self.refused)} refused"
+        return out + "".join(f"\n  refused {h}: {why}" for h, why in self.refused.items())
+
+
+def read_jobs(sweep: SweepFolder) -> list[dict]:
+    if not sweep.jobs_file.exists():
+        raise ValueError(f"{sweep.path}: no jobs.json (not a sweep folder)")
+    return json.loads(sweep.jobs_file.read_text())
+
+
+def fill_ssim(folder: str | Path, data_root: str | None = None,
+              progress: Callable[[str], None] = lambda line: None) -> FillReport:
+    sweep = SweepFolder(Path(folder))
+    records = RecordsFile(sweep.path)
+    report = FillReport()
+    for job in read_jobs(sweep):
+        if job["kind"] != "episode":
+            continue
+        layout = sweep.job(job["config_hash"])
+        if not layout.result_file.exists():
+            continue
+        episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
+        if episode.final.metrics_version >= METRICS_VERSION:
+            report.current.append(job["config_hash"])
+            continue
+        try:
+            filled = filled_episode(job, layout, episode, data_root)
+        except ValueError as err:
+            report.refused[job["config_hash"]] = str(err)
+            continue
+        write_result(layout, filled)
+        if not records.frame.empty:
+            records.add(filled_rows(records.frame, job["config_hash"], filled))
+        report.filled.append(job["config_hash"])
+        progress(f"{job['method']} on {job['scene']} (seed {job['seed']}): SSIM {filled.final.ssim:.4f} "
+                 f"(scikit-image {filled.final.ssim_skimage:.4f})")
+    return report
+
+
+def filled_episode(job: dict, layout: JobFolder, episode: EpisodeResult, data_root: str | None) -> EpisodeResult:
+    """The episode with its final 3DGS SSIM computed from ``artifacts/model.ply``; ValueError when
+    the model does not reproduce the recorded PSNR and scikit-image SSIM."""
+    if not layout.model_file.exists():
+        raise ValueError(f"no {layout.model_file}")
+    scene = scene_of(job, {"scene": episode.scene}, None, data_root)
+    test = scene.split(episode.test_split)
+    ids = episode.test_ids
+    model = ply.load(layout.model_file)
+    m = evaluate_views(model, test.cameras[ids], test.images.stack(ids), scene.background.to(model.means))
+    final = episode.final
+    psnr_gap = float(np.max(np.abs(np.subtract(m.psnr, final.per_view_psnr))))
+    if not psnr_gap <= PSNR_TOLERANCE_DB:
+        raise ValueError(f"{layout.model_file} does not reproduce the recorded PSNR (largest per-view "
+                         f"gap {psnr_gap:.3g} dB): not the model that was scored")
+    if final.per_view_ssim_skimage is not None:
+        ssim_gap = float(np.max(np.abs(np.subtract(m.ssim_skimage, final.per_view_ssim_skimage))))
+        if not ssim_gap <= SSIM_TOLERANCE:
+            raise ValueError(f"{layout.model_file} does not reproduce the recorded scikit-image SSIM "
+                             f"(largest per-view gap {ssim_gap:.3g})")
+    new = replace(final, ssim=float(np.mean(m.ssim)), per_view_ssim=list(m.ssim),
+                  metrics_version=METRICS_VERSION, ssim_source="model.ply")
+    return replace(episode, final=new)
+
+
+def write_result(layout: JobFolder, episode: EpisodeResult) -> None:
+    tmp = layout.result_file.with_suffix(".tmp")
+    tmp.write_text(json.dumps(episode.to_dict(), default=str))
+    os.replace(tmp, layout.result_file)
+
+
+def filled_rows(frame: pd.DataFrame, config_hash: str, episode: EpisodeResult) -> list[dict]:
+    """The job's records rows with the version-2 SSIM columns (final: both SSIMs; rounds: the old
+    value moved to ``ssim_skimage``, ``ssim`` missing)."""
+    rows = frame[frame["config_hash"] == config_hash].to_dict("records")
+    final = episode.final
+    for row in rows:
+        if row["kind"] == "final":
+            row.update(ssim=final.ssim, ssim_skimage=final.ssim_skimage,
+                       metrics_version=final.metrics_version, ssim_source=final.ssim_source)
+        elif row["kind"] == "round" and not _present(row.get("ssim_skimage")):
+            row.update(ssim_skimage=row.get("ssim"), ssim=None)
+    return rows
+
+
+def _present(value) -> bool:
+    return value is not None and value == value

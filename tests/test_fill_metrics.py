@@ -1,0 +1,107 @@
+"""Records made before metrics version 2 (``ssim`` was scikit-image's): the report never shows
+that value as SSIM, and ``gopre-eval --sweep`` fills in 3DGS's SSIM from each job's final model,
+equal to what the episode itself computes today, refusing a model that is not the scored one."""
+
+import json
+import shutil
+
+import pandas as pd
+import pytest
+
+from pipeline.cli.eval import main as eval_main
+from pipeline.experiment.fill_metrics import fill_ssim
+from pipeline.experiment.layout import SweepFolder
+from pipeline.experiment.records import RecordsFile
+from pipeline.experiment.sweep import run_sweep
+from pipeline.report.report import load_records, make_report
+from tests.test_experiment import TINY, composed
+
+
+@pytest.fixture(scope="module")
+def current_sweep(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fill") / "current"
+    summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random,coverage]", f"output_dir={out}",
+                                  "executor=local", "tracking=none"]))
+    assert summary.finished == 2
+    return out
+
+
+def as_version_1(src, dst):
+    """A copy of the sweep as the code before metrics version 2 wrote it."""
+    shutil.copytree(src, dst)
+    sweep = SweepFolder(dst)
+    for job in json.loads(sweep.jobs_file.read_text()):
+        path = sweep.job(job["config_hash"]).result_file
+        result = json.loads(path.read_text())
+        final = result["final"]
+        final["ssim"], final["per_view_ssim"] = final.pop("ssim_skimage"), final.pop("per_view_ssim_skimage")
+        del final["metrics_version"], final["ssim_source"]
+        for r in result["rounds"]:
+            r["test_ssim"] = r.pop("test_ssim_skimage")
+        path.write_text(json.dumps(result))
+    records = RecordsFile(dst)
+    frame = records.frame.assign(ssim=records.frame["ssim_skimage"])
+    frame.drop(columns=["ssim_skimage", "metrics_version", "ssim_source"]).to_parquet(records.path, index=False)
+    return dst
+
+
+def finals(folder):
+    frame = load_records(folder)
+    return frame[frame["kind"] == "final"].set_index("config_hash").sort_index()
+
+
+def test_a_version_1_sweep_is_reported_without_an_ssim_it_does_not_have(current_sweep, tmp_path):
+    old = as_version_1(current_sweep, tmp_path / "old")
+    now, before = finals(current_sweep), finals(old)
+    assert before["ssim"].isna().all() and before["metrics_version"].eq(1).all()
+    assert (before["ssim_skimage"] == now["ssim_skimage"]).all()
+    rounds = load_records(old).query("kind == 'round'")
+    assert rounds["ssim"].isna().all() and rounds["ssim_skimage"].notna().all()
+    report = make_report(old, tmp_path / "report")
+    assert "recorded before it (metrics version 1)" in report["tables"]
+    for value in before["ssim_skimage"]:  # scikit-image's value is never printed as SSIM
+        assert f"{value:.3f}" not in report["tables"]
+
+
+def test_filling_a_version_1_sweep_gives_back_what_the_episode_computes(current_sweep, tmp_path, capsys):
+    old = as_version_1(current_sweep, tmp_path / "old")
+    assert eval_main(["--sweep", str(old)]) == 0
+    assert "2 filled, 0 already current, 0 refused" in capsys.readouterr().out
+    now, filled = finals(current_sweep), finals(old)
+    assert filled["ssim"].tolist() == pytest.approx(now["ssim"].tolist(), abs=1e-12)
+    assert (filled["ssim"] != filled["ssim_skimage"]).all()
+    assert filled["metrics_version"].eq(2).all() and filled["ssim_source"].eq("model.ply").all()
+    sweep = SweepFolder(old)
+    for config_hash in now.index:
+        result = json.loads(sweep.job(config_hash).result_file.read_text())
+        truth = json.loads(SweepFolder(current_sweep).job(config_hash).result_file.read_text())
+        assert result["final"]["per_view_ssim"] == pytest.approx(truth["final"]["per_view_ssim"], abs=1e-12)
+        assert [r["test_ssim"] for r in result["rounds"]] == [None] * len(result["rounds"])  # not kept
+        assert [r["test_ssim_skimage"] for r in result["rounds"]] == [r["test_ssim_skimage"] for r in truth["rounds"]]
+    rounds = load_records(old).query("kind == 'round'")
+    assert rounds["ssim"].isna().all() and rounds["ssim_skimage"].notna().all()
+    # nothing left to do
+    again = fill_ssim(old)
+    assert (again.filled, sorted(again.current)) == ([], sorted(now.index))
+
+
+def test_a_model_that_is_not_the_scored_one_is_refused_and_left_alone(current_sweep, tmp_path, capsys):
+    old = as_version_1(current_sweep, tmp_path / "old")
+    sweep = SweepFolder(old)
+    a, b = sorted(finals(old).index)
+    shutil.copy(sweep.job(b).model_file, sweep.job(a).model_file)  # a's model replaced by b's
+    untouched = sweep.job(a).result_file.read_bytes()
+    assert eval_main(["--sweep", str(old)]) == 1
+    out = capsys.readouterr().out
+    assert "1 filled, 0 already current, 1 refused" in out and f"refused {a}" in out
+    assert "does not reproduce the recorded PSNR" in out
+    assert sweep.job(a).result_file.read_bytes() == untouched
+    frame = finals(old)
+    assert pd.isna(frame.loc[a, "ssim"]) and frame.loc[b, "metrics_version"] == 2
+
+
+def test_sweep_and_model_arguments_are_exclusive(tmp_path):
+    with pytest.raises(SystemExit):
+        eval_main(["--sweep", str(tmp_path), "model.ply"])
+    with pytest.raises(SystemExit):
+        eval_main([])
