@@ -223,3 +223,38 @@ def test_generating_the_scene_reports_every_view_and_the_cli_prints_tenths(tmp_p
     assert data_main(["generate", str(tmp_path / "b"), "--size", "8"]) == 0
     err = capsys.readouterr().err.splitlines()
     assert err[0] == "train: 10/100 views" and err[-1] == "test: 200/200 views" and len(err) == 20
+
+
+def rays_at_the_whole_scene(count: int, seed: int):
+    """Rays from random points on the camera sphere (and a few close ones) to random points
+    of a box larger than the scene: every primitive, its edges and the group boxes' walls get hit."""
+    gen = torch.Generator().manual_seed(seed)
+    origin = torch.nn.functional.normalize(torch.randn(count, 3, generator=gen), dim=1)
+    origin = origin * torch.where(torch.rand(count, generator=gen) < 0.2, 1.6, RADIUS)[:, None]
+    target = (torch.rand(count, 3, generator=gen) * 2 - 1) * torch.tensor([1.2, 1.2, 1.1])
+    return origin, torch.nn.functional.normalize(target - origin, dim=1)
+
+
+def test_the_culled_ray_caster_is_the_reference_ray_by_ray():
+    """The fast intersector (group boxes, surfaces copied from the nearest primitive) against the
+    one that intersects every primitive with every ray: identical, not close."""
+    from pipeline.data.synthetic import _intersect, _intersect_reference
+    o, d = rays_at_the_whole_scene(60_000, 0)
+    fast, slow = _intersect(o, d), _intersect_reference(o, d)
+    hit = torch.isfinite(slow.t)
+    assert 0.3 < hit.float().mean() < 0.95
+    assert torch.equal(torch.isfinite(fast.t), hit) and torch.equal(fast.t[hit], slow.t[hit])
+    for name in ("normal", "uv", "tex"):
+        assert torch.equal(getattr(fast, name)[hit], getattr(slow, name)[hit]), name
+    assert len(set(slow.tex[hit].tolist())) == 13  # every texture, so every kind of primitive, was hit
+
+
+def test_views_rendered_by_a_worker_pool_are_the_same_files(tmp_path):
+    one = generate(tmp_path / "one", seed=5, size=24, n_train=7, n_test=4, workers=1)
+    pool = generate(tmp_path / "pool", seed=5, size=24, n_train=7, n_test=4, workers=2)
+    names = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(pool) for p in pool.rglob("*") if p.is_file()) and len(names) == 14
+    for name in names:
+        assert (one / name).read_bytes() == (pool / name).read_bytes(), name
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        generate(tmp_path / "bad", size=8, n_train=1, n_test=1, workers=0)
