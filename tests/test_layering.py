@@ -1,24 +1,18 @@
-"""Dependencies point one way: the core never imports the orchestration or plotting stack, and
-reports never import torch (checked on the source, so it fails as soon as someone adds one)."""
+"""Dependencies point one way: import-linter's contracts (pyproject.toml) for the rooms' layers
+and the edge-only libraries, plus what it cannot express: no private imports across modules, the
+Fisher walk's declared surface of the compositor."""
 
 import ast
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "pipeline"
-EDGE_ONLY = {"hydra", "omegaconf", "ray", "mlflow", "matplotlib", "viser", "playwright"}
-CORE = ["splat", "fisher", "acquisition", "fit", "data", "active", "eval", "cameras.py", "memory.py"]
-
-
-def imported_roots(path: Path) -> set[str]:
-    roots = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            roots |= {a.name.split(".")[0] for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            roots.add(node.module.split(".")[0])
-    return roots
+ROOT_DIR = ROOT.parent
 
 
 def files(part: str) -> list[Path]:
@@ -26,43 +20,36 @@ def files(part: str) -> list[Path]:
     return [target] if target.is_file() else sorted(target.rglob("*.py"))
 
 
-@pytest.mark.parametrize("part", CORE)
-def test_core_does_not_import_orchestration_or_plotting(part):
-    for path in files(part):
-        assert not imported_roots(path) & EDGE_ONLY, f"{path} imports {imported_roots(path) & EDGE_ONLY}"
+def lint(project: Path) -> subprocess.CompletedProcess:
+    """import-linter over ``project``'s pipeline package with ``project``'s pyproject contracts."""
+    env = {**os.environ, "PYTHONPATH": str(project)}
+    return subprocess.run([sys.executable, "-c", "import sys; from importlinter.cli import lint_imports; "
+                           "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True, no_logo=True))"],
+                          cwd=project, env=env, capture_output=True, text=True)
 
 
-def test_reports_do_not_import_torch():
-    for path in files("report"):
-        assert "torch" not in imported_roots(path), path
+def test_the_import_contracts_hold():
+    """pyproject.toml's [tool.importlinter] contracts: the rooms' layers, the edge-only libraries
+    (hydra, omegaconf, ray, mlflow, matplotlib, viser, playwright never in the core), reports
+    without torch."""
+    done = lint(ROOT_DIR)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "5 kept, 0 broken" in done.stdout
 
 
-# What each room may not import: lower rooms never reach up (issue 30: the sampling rules live in
-# data/, the image helpers in eval/, so neither lifts data/ above acquisition nor the viewer into
-# the experiment layer).
-NOT_ABOVE = {
-    "splat": {"fisher", "acquisition", "fit", "data", "active", "eval", "experiment", "report", "view"},
-    "fisher": {"acquisition", "fit", "data", "active", "experiment", "report", "view"},
-    "data": {"acquisition", "fisher", "fit", "active", "experiment", "report", "view"},
-    "eval": {"acquisition", "active", "experiment", "report", "view"},
-    "acquisition": {"active", "experiment", "report", "view"},
-}  # view/ still reads a job's config through experiment.build (the typed run spine will own it)
-
-
-def pipeline_rooms(path: Path) -> set[str]:
-    rooms = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
-                 [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else [])
-        rooms |= {n.split(".")[1] for n in names if n.startswith("pipeline.") and n.count(".") >= 1}
-    return rooms
-
-
-@pytest.mark.parametrize("part", sorted(NOT_ABOVE))
-def test_a_room_does_not_import_the_rooms_above_it(part):
-    for path in files(part):
-        bad = pipeline_rooms(path) & NOT_ABOVE[part]
-        assert not bad, f"{path} imports pipeline.{sorted(bad)}"
+@pytest.mark.parametrize("room,line,broken", [
+    ("splat/render.py", "import pipeline.fisher.exact", "rooms point one way"),
+    ("fisher/posterior.py", "import mlflow", "the core never imports"),
+    ("report/tables.py", "import torch", "reports read records"),
+])
+def test_the_import_contracts_catch_a_planted_import(tmp_path, room, line, broken):
+    shutil.copytree(ROOT, tmp_path / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT_DIR / "pyproject.toml", tmp_path)
+    target = tmp_path / "pipeline" / room
+    target.write_text(target.read_text() + f"\n{line}  # planted\n")
+    done = lint(tmp_path)
+    assert done.returncode != 0 and "1 broken" in done.stdout, done.stdout
+    assert broken in done.stdout.split("Broken contracts")[1]
 
 
 def test_no_module_imports_another_modules_private_names():
@@ -79,11 +66,3 @@ def test_the_fisher_walks_only_the_declared_surface_of_the_compositor():
     used = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
             and n.module == "pipeline.splat.rasterize" for a in n.names}
     assert used and used <= set(rasterize.__all__), used - set(rasterize.__all__)
-
-
-def test_nothing_imports_the_commands():
-    """pipeline/cli is the outermost room: the commands import the library, never the reverse."""
-    for path in files("."):
-        if path.parent.name == "cli":
-            continue
-        assert "cli" not in pipeline_rooms(path), f"{path} imports pipeline.cli"

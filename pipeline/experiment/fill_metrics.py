@@ -27,6 +27,7 @@ import pandas as pd
 
 from pipeline.active.results import METRICS_VERSION, EpisodeResult
 from pipeline.eval.metrics import evaluate_views
+from pipeline.experiment.build import episode_config
 from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.scene_lookup import scene_of
@@ -58,6 +59,7 @@ def fill_ssim(folder: str | Path, data_root: str | None = None,
     sweep = SweepFolder(Path(folder))
     records = RecordsFile(sweep.path)
     report = FillReport()
+    scenes: dict = {}  # (scene, width) -> Scene: a sweep's jobs share a few scenes
     for job in read_jobs(sweep):
         if job["kind"] != "episode":
             continue
@@ -69,7 +71,7 @@ def fill_ssim(folder: str | Path, data_root: str | None = None,
             report.current.append(job["config_hash"])
             continue
         try:
-            filled = filled_episode(job, layout, episode, data_root)
+            filled = filled_episode(job, layout, episode, data_root, scenes)
         except ValueError as err:
             report.refused[job["config_hash"]] = str(err)
             continue
@@ -82,12 +84,18 @@ def fill_ssim(folder: str | Path, data_root: str | None = None,
     return report
 
 
-def filled_episode(job: dict, layout: JobFolder, episode: EpisodeResult, data_root: str | None) -> EpisodeResult:
+def filled_episode(job: dict, layout: JobFolder, episode: EpisodeResult, data_root: str | None,
+                   scenes: dict | None = None) -> EpisodeResult:
     """The episode with its final 3DGS SSIM computed from ``artifacts/model.ply``; ValueError when
-    the model does not reproduce the recorded PSNR and scikit-image SSIM."""
+    the model does not reproduce the recorded PSNR and scikit-image SSIM. ``scenes`` caches the
+    scenes read so far."""
     if not layout.model_file.exists():
         raise ValueError(f"no {layout.model_file}")
-    scene = scene_of(job, {"scene": episode.scene}, None, data_root)
+    scenes = {} if scenes is None else scenes
+    key = (job["scene_path"], episode.scene, episode_config(job).fit.image_width)
+    if key not in scenes:
+        scenes[key] = scene_of(job, {"scene": episode.scene}, None, data_root)
+    scene = scenes[key]
     test = scene.split(episode.test_split)
     ids = episode.test_ids
     model = ply.load(layout.model_file)

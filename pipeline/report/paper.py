@@ -26,8 +26,10 @@ METRIC_LABELS = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "per_candidat
                  "selection_seconds": "round s", "peak_rss_mb": "peak MB"}
 SCALE_NOTE = ("Absolute numbers differ from the paper's by design (CPU scale: 64 px, 2-5k iterations, "
               "10k Gaussians; the paper: 1066 x 1600 px, 30k iterations, a GPU); compare the orderings "
-              "and the paired gaps. Our SSIM is scikit-image's (valid interior), not 3DGS's "
-              "zero-padded mean; our memory is the process's peak RSS, the paper's is GPU memory.")
+              "and the paired gaps. Our SSIM is 3DGS's (zero-padded windows, the full-image mean), as the "
+              "paper's, on float renders (3DGS scores 8-bit PNGs); our memory is the process's peak "
+              "RSS, the paper's is GPU memory; our times come from jobs that shared 2 cores with "
+              "other jobs of the sweep.")
 
 
 @dataclass(frozen=True)
