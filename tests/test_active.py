@@ -131,10 +131,15 @@ def test_uncertainty_experiment_gives_curves_and_ause(scene_dir):
     scene = load(scene_dir, episode)
     out = run_uncertainty_experiment(scene, episode, UncertaintyConfig(train_views=4, iterations=120,
                                                                        map_views=2))
-    assert set(out["curves"]) == {"gopre", "fisherrf", "activenerf", "random", "oracle"}
-    assert out["ause"]["oracle"] == 0 and all(v >= -1e-12 for v in out["ause"].values())
-    assert len(out["psnr"]) == len(out["test_ids"]) == 8
-    assert out["variance_maps"].shape == (2, 32, 32, 3) and bool((out["variance_maps"] >= 0).all())
+    assert set(out.curves) == {"gopre", "fisherrf", "activenerf", "random", "oracle"}
+    assert out.ause["oracle"] == 0 and all(v >= -1e-12 for v in out.ause.values())
+    assert len(out.psnr) == len(out.test_ids) == 8
+    assert out.variance_maps.shape == (2, 32, 32, 3) and bool((out.variance_maps >= 0).all())
+    import json
+    from dataclasses import replace
+    from pipeline.active.results import UncertaintyResult
+    plain = json.loads(json.dumps(out.to_dict()))  # what result.json and Ray carry
+    assert UncertaintyResult.from_dict(plain) == replace(out, variance_maps=None, renders=None, ground_truth=None)
 
 
 class Killed(Exception):

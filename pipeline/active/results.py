@@ -1,4 +1,5 @@
-"""What an episode returns: its rounds, its final metrics and the whole result, as typed records
+"""What an episode returns (its rounds, its final metrics, the whole result) and what the
+uncertainty experiment returns, as typed records
 that travel as plain data (``to_dict`` / ``from_dict``) across Ray, into ``result.json`` and the
 checkpoint, and back.
 
@@ -17,6 +18,8 @@ Nothing a job selects or trains depends on the version, so the config hash does 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+
+from torch import Tensor
 
 from pipeline.splat import Gaussians
 
@@ -125,3 +128,32 @@ class EpisodeResult:
         _check_keys(cls, data)
         return cls(**{**data, "rounds": [RoundRecord.from_dict(r) for r in data["rounds"]],
                       "final": FinalMetrics.from_dict(data["final"])})
+
+
+@dataclass
+class UncertaintyResult:
+    """The uncertainty experiment (``pipeline.active.uncertainty``): the views it trained on and
+    ranked, each test view's PSNR and each method's uncertainty, the sparsification curves over
+    ``fractions`` and their AUSE against the oracle; the maps' tensors stay out of ``to_dict``."""
+
+    train_ids: list[int]
+    test_ids: list[int]
+    psnr: list[float]                        # per test view
+    uncertainty: dict[str, list[float]]      # method -> per test view
+    fractions: list[float]
+    curves: dict[str, list[float]]           # method (and random, oracle) -> PSNR per fraction
+    ause: dict[str, float]
+    map_ids: list[int]                       # the test views with per-pixel maps
+    variance_maps: Tensor | None = None      # [V, H, W, 3] predictive variance of the map views
+    renders: Tensor | None = None            # [V, H, W, 3]
+    ground_truth: Tensor | None = None       # [V, H, W, 3]
+
+    TENSORS = ("variance_maps", "renders", "ground_truth")
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.TENSORS}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "UncertaintyResult":
+        _check_keys(cls, data)
+        return cls(**data)

@@ -23,6 +23,7 @@ from pipeline.acquisition import SelectionContext
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import initial_gaussians, uniform_subset
+from pipeline.active.results import UncertaintyResult
 from pipeline.cameras import Cameras
 from pipeline.data.sampling import seeded_subset
 from pipeline.data.scene import Scene
@@ -78,7 +79,7 @@ def activenerf_uncertainties(gaussians: Gaussians, train: Cameras, train_images:
     return ActiveNeRFStrategy().rendered_variance(ctx, test).sum((1, 2)).numpy()
 
 
-def run_uncertainty_experiment(scene: Scene, episode: EpisodeConfig, cfg: UncertaintyConfig) -> dict:
+def run_uncertainty_experiment(scene: Scene, episode: EpisodeConfig, cfg: UncertaintyConfig) -> UncertaintyResult:
     """Fit on a random subset, rank test views; returns per-view PSNR, each method's uncertainty,
     sparsification curves and AUSE, and per-pixel variance maps ([V, H, W, 3] tensors)."""
     pool = scene.split("train" if "train" in scene.splits else "all")
@@ -107,9 +108,7 @@ def run_uncertainty_experiment(scene: Scene, episode: EpisodeConfig, cfg: Uncert
     with torch.no_grad():
         renders = render(g, test.cameras[shown], scene.background).rgb.clamp(0, 1)
     maps = predictive_variance_maps(g, test.cameras[shown], s, scene.background)
-    return {"train_ids": train_ids, "test_ids": test_ids, "psnr": psnr.tolist(),
-            "uncertainty": {k: v.tolist() for k, v in scores.items()},
-            "fractions": list(DECILES), "curves": {k: v.tolist() for k, v in curves.items()},
-            "ause": {k: ause(v, oracle) for k, v in curves.items()},
-            "map_ids": shown, "variance_maps": maps.float(), "renders": renders,
-            "ground_truth": test.images.stack(shown)}
+    return UncertaintyResult(train_ids, test_ids, psnr.tolist(), {k: v.tolist() for k, v in scores.items()},
+                             list(DECILES), {k: v.tolist() for k, v in curves.items()},
+                             {k: ause(v, oracle) for k, v in curves.items()}, shown, maps.float(), renders,
+                             test.images.stack(shown))

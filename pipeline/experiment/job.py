@@ -68,7 +68,7 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     return out
 
 
-def uncertainty_rows(g, background: torch.Tensor, taken, cams, truth: torch.Tensor,
+def uncertainty_strips(g, background: torch.Tensor, taken, cams, truth: torch.Tensor,
                      preds: torch.Tensor) -> list[torch.Tensor]:
     """One [H, 4W, 3] row per view of ``cams``: ground truth | render | squared error | per-pixel
     predictive variance of the ``taken`` views' posterior, each map on its own colour scale."""
@@ -122,8 +122,8 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts)
     taken = scene.split(result.pool_split).cameras[result.initial + result.selected]
-    rows = uncertainty_rows(result.gaussians, background, taken, views.cameras[shown], truth, preds)
-    for view, row in zip(shown, rows):
+    strips = uncertainty_strips(result.gaussians, background, taken, views.cameras[shown], truth, preds)
+    for view, row in zip(shown, strips):
         artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)
     return {"result": result.to_dict(), "artifacts": artifacts}
 
@@ -131,12 +131,12 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
 def run_uncertainty_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     out = run_uncertainty_experiment(scene, episode_config(job), uncertainty_config(job))
     artifacts = {}
-    for i, view in enumerate(out["map_ids"]):
-        row = uncertainty_row(out["ground_truth"][i], out["renders"][i], out["variance_maps"][i].sum(-1))
+    for i, view in enumerate(out.map_ids):
+        row = uncertainty_row(out.ground_truth[i], out.renders[i], out.variance_maps[i].sum(-1))
         artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)
-    result = {k: v for k, v in out.items() if k not in ("variance_maps", "renders", "ground_truth")}
+    result = out.to_dict()
     artifacts["sparsification.json"] = json.dumps(result).encode()
-    _log(folder, f"uncertainty: AUSE {result['ause']}")
+    _log(folder, f"uncertainty: AUSE {out.ause}")
     return {"result": result, "artifacts": artifacts}
 
 

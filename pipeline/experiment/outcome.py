@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
-from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
+from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord, UncertaintyResult
 
 FINISHED, FAILED = "FINISHED", "FAILED"
 TRACEBACK_ARTIFACT = "traceback.txt"
@@ -60,6 +60,13 @@ class JobOutcome:
         if self.result is None or "rounds" not in self.result:
             return None
         return EpisodeResult.from_dict(self.result)
+
+    @property
+    def uncertainty(self) -> UncertaintyResult | None:
+        """The typed uncertainty-experiment result (None for a FAILED outcome or an episode)."""
+        if self.result is None or "curves" not in self.result:
+            return None
+        return UncertaintyResult.from_dict(self.result)
 
     @property
     def final(self) -> FinalMetrics | None:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.active.results import EpisodeResult, FinalMetrics
+from pipeline.active.results import EpisodeResult, FinalMetrics, UncertaintyResult
 from pipeline.experiment.outcome import JobOutcome
 
 RECORDS = "records.parquet"
@@ -66,13 +66,13 @@ def final_columns(final: FinalMetrics) -> dict:
             "metrics_version": final.metrics_version, "ssim_source": final.ssim_source}
 
 
-def uncertainty_rows(base: dict, result: dict, seconds: float) -> list[dict]:
+def uncertainty_rows(base: dict, result: UncertaintyResult, seconds: float) -> list[dict]:
     rows = [{**base, "kind": "sparsification", "uncertainty_method": name, "fraction": f, "psnr": v}
-            for name, curve in result["curves"].items() for f, v in zip(result["fractions"], curve)]
+            for name, curve in result.curves.items() for f, v in zip(result.fractions, curve)]
     rows += [{**base, "kind": "ause", "uncertainty_method": name, "ause": value}
-             for name, value in result["ause"].items()]
-    rows.append({**base, "kind": "final", "psnr": float(np.mean(result["psnr"])), "wall_seconds": seconds,
-                 "test_views": len(result["psnr"])})
+             for name, value in result.ause.items()]
+    rows.append({**base, "kind": "final", "psnr": float(np.mean(result.psnr)), "wall_seconds": seconds,
+                 "test_views": len(result.psnr)})
     return rows
 
 
@@ -82,7 +82,7 @@ def job_rows(job: dict, outcome: JobOutcome, run_id: str | None) -> list[dict]:
         return [{**base, "kind": "final", "error": outcome.traceback[-2000:],
                  "attempts": outcome.attempts}]
     if job["kind"] == "uncertainty":
-        rows = uncertainty_rows(base, outcome.result, outcome.seconds)
+        rows = uncertainty_rows(base, outcome.uncertainty, outcome.seconds)
     else:
         rows = episode_rows(base, outcome.episode, outcome.seconds)
     for row in rows:

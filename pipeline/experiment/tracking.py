@@ -214,9 +214,8 @@ class MlflowTracker:
     def _metrics(job: dict, outcome: JobOutcome,
                  logged: set[int] = frozenset()) -> list[tuple[str, float, int]]:
         """Final metrics, and the round metrics of steps not already logged live."""
-        result = outcome.result
         if job["kind"] == "uncertainty":
-            return [(f"ause_{name}", v, 0) for name, v in result["ause"].items()]
+            return [(f"ause_{name}", v, 0) for name, v in outcome.uncertainty.ause.items()]
         episode = outcome.episode
         out = [m for r in episode.rounds if r.num_views not in logged for m in round_metrics(r)]
         final = episode.final
