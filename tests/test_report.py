@@ -265,3 +265,31 @@ def test_several_sweeps_are_reported_as_one_table_and_a_twice_run_episode_is_ref
     (tmp_path / "c").mkdir()
     with pytest.raises(ValueError, match=r"method=random.*finished in more than one.*'again', 'study'"):
         combine_records([records_path(study, tmp_path / "a"), records_path(twice, tmp_path / "c")])
+
+
+def test_a_sweep_gets_one_qualitative_grid_per_scene_from_its_first_seed_and_setting(tmp_path):
+    """Paper Fig. 5 has a panel per dataset: each scene its own grid, columns = methods (the first
+    seed, the scene's first setting), not the first scene only nor a column per setting."""
+    from PIL import Image
+
+    from pipeline.report.report import make_figures
+    sweep = tmp_path / "sweep"
+    rows = []
+    for scene, shade in (("lego", 50), ("bonsai", 150)):
+        for method in ("gopre", "random"):
+            for seed in (0, 1):
+                for setting in ("protocol.kind=global", "protocol.kind=goal"):
+                    row = final_row(method, "d", scene, seed, 20.0, 0.5, setting=setting)
+                    folder = sweep / "jobs" / row["config_hash"] / "artifacts" / "renders"
+                    folder.mkdir(parents=True)
+                    render = np.full((8, 8, 3), shade + 10 * seed + (setting.endswith("goal")), np.uint8)
+                    Image.fromarray(np.concatenate([np.zeros((8, 8, 3), np.uint8), render], 1)).save(
+                        folder / "test_0001.png")
+                    rows.append(row)
+    made = make_figures(pd.DataFrame(rows), sweep, tmp_path / "out")
+    assert made["qualitative.png"]["columns"] == made["qualitative_bonsai.png"]["columns"] == \
+        ["ground truth", "gopre", "random"]
+    from pipeline.report.report import grid_images
+    chosen = grid_images(sweep, pd.DataFrame(rows), "renders", "bonsai")
+    shades = {m: int(np.asarray(Image.open(f[0]))[0, 8, 0]) for m, f in chosen.items()}
+    assert shades == {"gopre": 150, "random": 150}  # bonsai, seed 0, the first setting (global)

@@ -200,15 +200,25 @@ def ause_table(frame: pd.DataFrame, title: str) -> list[Table]:
     return [build_table(rows, f"{title}: AUSE (PSNR, lower is better)", "Uncertainty", "dataset", ["ause"])]
 
 
-def _artifact_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str) -> dict[str, list[Path]]:
+def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
+                     scene: str | None = None) -> dict[str, list[Path]]:
+    """The first four ``sub`` images of each column of one scene's grid (default: the first
+    scene), from its first seed: one column per method at the scene's first setting, or, when
+    one method ran, one per setting."""
     if sweep_dir is None or final.empty:
         return {}
-    first_scene, first_seed = final["scene"].iloc[0], final["seed"].min()
-    chosen = final[(final["scene"] == first_scene) & (final["seed"] == first_seed)]
+    part = final[final["scene"] == (scene if scene is not None else final["scene"].iloc[0])]
+    part = part.assign(setting=part["setting"].fillna("") if "setting" in part else "")
+    part = part[part["seed"] == part["seed"].min()]
+    if part["method"].nunique() > 1:
+        part = part[part["setting"] == part["setting"].iloc[0]].drop_duplicates("method")
+        labels = list(part["method"])
+    else:
+        part = part.drop_duplicates("setting")
+        labels = [f"{m} ({s})" if s else m for m, s in zip(part["method"], part["setting"])]
     out = {}
-    for _, row in chosen.drop_duplicates("method").iterrows():
-        folder = sweep_dir / "jobs" / row["config_hash"] / "artifacts" / sub
-        label = f"{row['method']}" + (f" ({row['setting']})" if row.get("setting") else "")
+    for label, config_hash in zip(labels, part["config_hash"]):
+        folder = sweep_dir / "jobs" / config_hash / "artifacts" / sub
         out[label] = sorted(folder.glob("*.png"))[:4] if folder.exists() else []
     return out
 
@@ -224,10 +234,13 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
     if not curves.empty:
         made["sparsification.png"] = figures.sparsification(
             curves, _finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
-    renders = _artifact_images(sweep_dir, _finished(frame, "final", "episode"), "renders")
-    if any(renders.values()):
-        made["qualitative.png"] = figures.qualitative_grid(renders, fig_dir / "qualitative.png")
-    maps = _artifact_images(sweep_dir, _finished(frame, "final", "uncertainty"), "uncertainty")
+    final = _finished(frame, "final", "episode")
+    for k, scene in enumerate(dict.fromkeys(final["scene"])):  # one grid per scene (paper Fig. 5)
+        renders = grid_images(sweep_dir, final, "renders", scene)
+        if any(renders.values()):
+            name = "qualitative.png" if k == 0 else f"qualitative_{scene}.png"
+            made[name] = figures.qualitative_grid(renders, fig_dir / name)
+    maps = grid_images(sweep_dir, _finished(frame, "final", "uncertainty"), "uncertainty")
     if any(maps.values()):
         made["uncertainty_maps.png"] = figures.image_grid(
             {f"view {i}": [p] for files in maps.values() for i, p in enumerate(files)},
