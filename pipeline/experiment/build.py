@@ -29,7 +29,10 @@ JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: overrides for this method
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
-              "init"}  # init: optional (+splat.init=ply:PATH), absent from the presets' hashes
+              "init", "fit"}
+# init (+splat.init=ply:PATH) and fit (+splat.fit.lr.means_init=1e-4: any hyperparameter of the
+# episode's fit recipe, applied last) are optional and absent from the presets, so the presets'
+# hashes do not change; `gopre-run ... plan=true` lists every hyperparameter a job runs with.
 # Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
 # never resumes or reuses results of the code before it. "fidelity-1": issue 26 (scene extent,
 # tau -> 0, ActiveNeRF port, prune switch, kNN scales, probes incl. the initial views).
@@ -190,6 +193,11 @@ def episode_config(job: dict) -> EpisodeConfig:
             fit = fit.with_changes(image_width=int(splat["image_width"]))
         if splat.get("max_gaussians"):
             fit = fit.with_changes(densify=replace(fit.densify, max_gaussians=int(splat["max_gaussians"])))
+        if splat.get("fit"):
+            try:
+                fit = fit.with_overrides(dict(splat["fit"]))
+            except ValueError as err:
+                raise ConfigError(f"splat.fit.{err}") from None
         fit = fit.with_changes(seed=job["seed"])
         protocol = _protocol(job["protocol"])
         changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",

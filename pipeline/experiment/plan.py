@@ -40,6 +40,30 @@ def estimate(job: dict, durations: pd.DataFrame) -> float | None:
     return None
 
 
+def hyperparameter_text(jobs: list[dict]) -> str:
+    """Every hyperparameter the jobs' episodes run with, once per distinct set (the fit recipe
+    after the preset, splat.iterations / image_width / max_gaussians and any +splat.fit.* overrides,
+    then the episode's own settings), with the jobs (methods) that use it."""
+    from pipeline.experiment.build import episode_config  # the jobs' own resolution
+
+    groups: dict[str, list[str]] = {}
+    for job in jobs:
+        cfg = episode_config(job)
+        values = {**{f"fit.{k}": v for k, v in cfg.fit.flat().items() if k != "seed"},
+                  **{k: getattr(cfg, k) for k in ("epochs_per_view", "views_per_round", "pool_keep_fraction",
+                                                  "post_selection", "curve_test_views", "lpips")}}
+        text = "\n".join(f"  {k} = {v}" for k, v in values.items())
+        groups.setdefault(text, []).append(f"{job['method']} on {job['scene']}")
+    out = []
+    for text, users in groups.items():
+        names = sorted(set(users))
+        out += [f"hyperparameters of {', '.join(names[:4])}{' ...' if len(names) > 4 else ''} "
+                f"(override any with +splat.fit.<name>=value, fit.iterations through splat.iterations; an "
+                f"episode whose rounds need more iterations rescales the recipe, pipeline/active/schedule.py):",
+                text]
+    return "\n".join(out)
+
+
 def plan_jobs(jobs: list[dict], output_dir: Path) -> list[PlannedJob]:
     records = RecordsFile(output_dir)
     done = records.finished_hashes()

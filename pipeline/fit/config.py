@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,20 @@ class FitConfig:
     def with_changes(self, **changes) -> "FitConfig":
         return replace(self, **changes)
 
+    def with_overrides(self, overrides: dict) -> "FitConfig":
+        """This recipe with ``overrides`` applied: a nested mapping of field names (``{"lr":
+        {"means_init": 1e-4}, "densify": {"grad_threshold": 3e-4}, "ssim_weight": 0.3}``).
+        ValueError names the dotted key of an unknown field or a value of the wrong type.
+        ``iterations`` is not among them: a recipe's length is changed by ``scaled_to``."""
+        if "iterations" in overrides:
+            raise ValueError("iterations: set the recipe's length with splat.iterations (it rescales "
+                             "every schedule), not as a fit override")
+        return _overridden(self, overrides, "")
+
+    def flat(self) -> dict[str, object]:
+        """Every hyperparameter as ``dotted.name -> value`` (what ``with_overrides`` accepts)."""
+        return _flat(asdict(self), "")
+
     def first_iterations(self, iterations: int) -> "FitConfig":
         """The first ``iterations`` steps of this recipe, schedules unchanged: densification,
         resets, SH steps and the learning-rate decay keep their iteration numbers (a 3DGS run
@@ -79,6 +93,55 @@ class FitConfig:
                                        interval=scale(d.interval),
                                        prune_large_after=scale(d.prune_large_after),
                                        opacity_reset_interval=scale(d.opacity_reset_interval)))
+
+
+def _overridden(obj, overrides: dict, where: str):
+    known = {f.name: f for f in fields(obj)}
+    changes = {}
+    for key, value in overrides.items():
+        name = f"{where}{key}"
+        if key not in known:
+            raise ValueError(f"{name}: unknown hyperparameter; allowed {sorted(known)}")
+        current = getattr(obj, key)
+        if is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ValueError(f"{name}: a group of hyperparameters ({sorted(f.name for f in fields(current))}), "
+                                 f"not a value")
+            changes[key] = _overridden(current, value, f"{name}.")
+        else:
+            changes[key] = _typed(name, current, value, str(known[key].type))
+    return replace(obj, **changes)
+
+
+def _typed(name: str, current, value, annotation: str):
+    """``value`` as the field's type (an int where a float is expected is fine; None only where
+    the annotation allows it); a field that is None now is checked against its annotation."""
+    if value is None:
+        if "None" not in annotation:
+            raise ValueError(f"{name}: may not be null")
+        return value
+    if current is None:  # e.g. max_gaussians: int | None
+        kinds = [k for k in ("bool", "int", "float", "str") if k in annotation.replace("None", "")]
+        current = {"bool": False, "int": 0, "float": 0.0, "str": ""}[kinds[0]] if kinds else value
+    if isinstance(current, bool) or isinstance(value, bool):
+        if not (isinstance(current, bool) and isinstance(value, bool)):
+            raise ValueError(f"{name}: expected {type(current).__name__}, got {value!r}")
+        return value
+    if isinstance(current, float) and isinstance(value, (int, float)):
+        return float(value)
+    if isinstance(current, int) and isinstance(value, int):
+        return value
+    raise ValueError(f"{name}: expected {type(current).__name__}, got {value!r}")
+
+
+def _flat(data: dict, where: str) -> dict[str, object]:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{where}{key}."))
+        else:
+            out[f"{where}{key}"] = value
+    return out
 
 
 def paper_preset() -> FitConfig:
