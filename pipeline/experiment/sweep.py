@@ -90,12 +90,11 @@ def job_label(job: dict) -> str:
 
 
 def _headline(outcome: JobOutcome) -> str:
-    result = outcome.result
-    if not result:
+    if not outcome.finished:
         return f"(see {TRACEBACK_ARTIFACT})"
-    if "final" in result:
-        return f"PSNR {result['final']['psnr']:.2f} dB in {outcome.seconds or 0:.0f} s"
-    return f"AUSE {json.dumps({k: round(v, 3) for k, v in result['ause'].items()})}"
+    if outcome.final is not None:
+        return f"PSNR {outcome.final.psnr:.2f} dB in {outcome.seconds or 0:.0f} s"
+    return f"AUSE {json.dumps({k: round(v, 3) for k, v in outcome.uncertainty.ause.items()})}"
 
 
 def save_artifacts(output_dir: Path, job: dict, outcome: JobOutcome) -> None:
@@ -233,96 +232,121 @@ def _locked_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: fl
     if lock.stale is not None:
         LOG.info(f"[{cfg.name}] note: took over a stale lock of a sweep that no longer runs "
                  f"(pid {lock.stale.get('pid')}, since {lock.stale.get('since')})")
-    return _run_sweep(cfg, jobs, output_dir, start, stale_driver=lock.stale is not None)
+    return SweepRun(cfg, jobs, output_dir, start).run(stale_driver=lock.stale is not None)
 
 
-def _run_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float,
-               stale_driver: bool = False) -> SweepSummary:
-    resolved = OmegaConf.to_container(cfg, resolve=True)
-    (SweepFolder(output_dir).config_file).write_text(json.dumps(resolved, indent=1, default=str))
-    records = RecordsFile(output_dir)
-    recorded = records.finished_hashes()
-    scenes = validate_sweep([j for j in jobs if j["config_hash"] not in recorded],
-                            bool(cfg.get("validate_images", True)))
-    tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
-    if stale_driver:  # the last driver here was killed: its open runs will never be closed
-        closed = tracker.close_stale_runs()
-        if closed:
-            LOG.info(f"[{cfg.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
-                     f"marked KILLED")
-    done = recorded | tracker.finished_hashes()
-    todo = execution_order([j for j in jobs if j["config_hash"] not in done])
-    LOG.info(f"[{cfg.name}] {len(jobs)} jobs: {len(jobs) - len(todo)} already finished (skipped), "
-             f"{len(todo)} to run; output in {output_dir}")
-    warn_stale(str(cfg.name), records, {j["config_hash"] for j in jobs} & done, output_dir)
-    SweepFolder(output_dir).jobs_file.write_text(json.dumps(jobs, indent=1))
-    executor = make_executor(resolved["executor"])
-    failed, untracked = 0, []
-    if todo:
-        progress = Progress(str(cfg.name), len(todo), 1)
+class SweepRun:
+    """One launch of a sweep, from the validated jobs to the summary: what it has to do
+    (``todo``), where results go (records, tracker, artifacts) and what it counted so far.
 
-        def on_done(job: dict, outcome: JobOutcome) -> None:
-            with critical():  # a stop signal waits until the job is recorded and tracked
-                record(job, outcome)
+    ``run`` prepares (validation, tracking, the skip list), fans the jobs out on the executor,
+    hears each finished job (``record``) and round (``track_round``) under ``critical()`` so a stop
+    signal waits for the bookkeeping, and ends with a summary (``interrupted`` on a stop signal)."""
 
-        def record(job: dict, outcome: JobOutcome) -> None:
-            nonlocal failed
-            failed += not outcome.finished
+    def __init__(self, cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float):
+        self.name, self.jobs, self.output_dir, self.start = str(cfg.name), jobs, output_dir, start
+        self.cfg = cfg
+        self.resolved = OmegaConf.to_container(cfg, resolve=True)
+        self.folder = SweepFolder(output_dir)
+        self.records = RecordsFile(output_dir)
+        self.failed, self.untracked = 0, []
+        self.tracker = self.executor = self.progress = None
+        self.todo: list[dict] = []
+
+    def run(self, stale_driver: bool = False) -> SweepSummary:
+        scenes = self.prepare(stale_driver)
+        if self.todo:
+            self.progress = Progress(self.name, len(self.todo), 1)
             try:
-                run_id = tracker.log_job(job, outcome)
-            except Exception as err:  # tracking trouble must not lose the job's records
-                LOG.warning(f"[{cfg.name}] warning: tracking failed for {job['config_hash']}: "
-                            f"{str(err).splitlines()[0][:300]}")
-                run_id = None
-                untracked.append(job["config_hash"])
-            save_artifacts(output_dir, job, outcome)
-            records.add(job_rows(job, outcome, run_id))
-            progress.slots = getattr(executor, "slots", 1)
-            progress.update(job, outcome)
+                with critical():
+                    self.tracker.start(self.resolved, len(self.todo))
+                self.executor.map(self.todo, scenes, self.on_done, self.on_round)
+            except SweepInterrupted as stop:
+                self.interrupted(stop)
+                raise
+        return self.finish()
 
-        def on_round(job: dict, message: RoundMessage) -> None:
-            with critical():
-                track_round(job, message)
+    def prepare(self, stale_driver: bool) -> dict[str, Scene]:
+        """Write the resolved config, validate what is left to run, open the tracker, decide the
+        skip list and the execution order; the scenes the jobs read."""
+        self.folder.config_file.write_text(json.dumps(self.resolved, indent=1, default=str))
+        recorded = self.records.finished_hashes()
+        scenes = validate_sweep([j for j in self.jobs if j["config_hash"] not in recorded],
+                                bool(self.cfg.get("validate_images", True)))
+        self.tracker = make_tracker(self.resolved["tracking"], self.output_dir, self.name)
+        if stale_driver:  # the last driver here was killed: its open runs will never be closed
+            closed = self.tracker.close_stale_runs()
+            if closed:
+                LOG.info(f"[{self.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
+                         f"marked KILLED")
+        done = recorded | self.tracker.finished_hashes()
+        self.todo = execution_order([j for j in self.jobs if j["config_hash"] not in done])
+        LOG.info(f"[{self.name}] {len(self.jobs)} jobs: {len(self.jobs) - len(self.todo)} already finished "
+                 f"(skipped), {len(self.todo)} to run; output in {self.output_dir}")
+        warn_stale(self.name, self.records, {j["config_hash"] for j in self.jobs} & done, self.output_dir)
+        self.folder.jobs_file.write_text(json.dumps(self.jobs, indent=1))
+        self.executor = make_executor(self.resolved["executor"])
+        return scenes
 
-        def track_round(job: dict, message: RoundMessage) -> None:
-            progress.round(job, message)
-            try:
-                tracker.log_round(job, message)
-            except Exception as err:  # tracking trouble must not stop the sweep
-                LOG.warning(f"[{cfg.name}] warning: tracking a round failed for {job['config_hash']}: {err}")
+    def on_done(self, job: dict, outcome: JobOutcome) -> None:
+        with critical():  # a stop signal waits until the job is recorded and tracked
+            self.record(job, outcome)
 
+    def record(self, job: dict, outcome: JobOutcome) -> None:
+        self.failed += not outcome.finished
         try:
-            with critical():
-                tracker.start(resolved, len(todo))
-            executor.map(todo, scenes, on_done, on_round)
-        except SweepInterrupted as stop:
-            ignore_stop_signals()  # a second Ctrl-C must not cut the bookkeeping short
-            interrupted = [j["config_hash"] for j in getattr(executor, "running", [])]
-            finished = progress.done - failed
-            summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
-                                   finished, failed, round(time.perf_counter() - start, 1), tracker.uri,
-                                   interrupted=interrupted, stopped_by=str(stop),
-                                   experiment_id=getattr(tracker, "experiment_id", None))
-            tracker.interrupt(asdict(summary))
-            SweepFolder(output_dir).summary_file.write_text(json.dumps(asdict(summary), indent=1))
-            LOG.info(f"[{cfg.name}] {stop}: finished {finished}, failed {failed}, interrupted "
-                     f"{len(interrupted)}, not started {len(todo) - progress.done - len(interrupted)} of "
-                     f"{len(todo)} jobs; relaunch the same command to resume (interrupted jobs continue from "
-                     f"their last round checkpoint)")
-            raise
-    summary = SweepSummary(str(cfg.name), str(output_dir), len(jobs), len(jobs) - len(todo),
-                           len(todo) - failed, failed, round(time.perf_counter() - start, 1), tracker.uri,
-                           untracked=untracked, experiment_id=getattr(tracker, "experiment_id", None))
-    try:
-        tracker.end(asdict(summary))
-    except Exception as err:
-        LOG.warning(f"[{cfg.name}] warning: could not close the sweep's MLflow run: {str(err).splitlines()[0][:300]}")
-    if untracked:
-        LOG.info(f"[{cfg.name}] {len(untracked)} finished job(s) could not be tracked ({', '.join(untracked)}); "
-                 f"their results are in records.parquet and jobs/<hash>/: once the tracking server is back, "
-                 f"relaunch the same command with tracking_sync=true")
-    SweepFolder(output_dir).summary_file.write_text(json.dumps(asdict(summary), indent=1))
-    return summary
+            run_id = self.tracker.log_job(job, outcome)
+        except Exception as err:  # tracking trouble must not lose the job's records
+            LOG.warning(f"[{self.name}] warning: tracking failed for {job['config_hash']}: "
+                        f"{str(err).splitlines()[0][:300]}")
+            run_id = None
+            self.untracked.append(job["config_hash"])
+        save_artifacts(self.output_dir, job, outcome)
+        self.records.add(job_rows(job, outcome, run_id))
+        self.progress.slots = getattr(self.executor, "slots", 1)
+        self.progress.update(job, outcome)
+
+    def on_round(self, job: dict, message: RoundMessage) -> None:
+        with critical():
+            self.track_round(job, message)
+
+    def track_round(self, job: dict, message: RoundMessage) -> None:
+        self.progress.round(job, message)
+        try:
+            self.tracker.log_round(job, message)
+        except Exception as err:  # tracking trouble must not stop the sweep
+            LOG.warning(f"[{self.name}] warning: tracking a round failed for {job['config_hash']}: {err}")
+
+    def summary(self, finished: int, **extra) -> SweepSummary:
+        return SweepSummary(self.name, str(self.output_dir), len(self.jobs), len(self.jobs) - len(self.todo),
+                            finished, self.failed, round(time.perf_counter() - self.start, 1), self.tracker.uri,
+                            experiment_id=getattr(self.tracker, "experiment_id", None), **extra)
+
+    def interrupted(self, stop: SweepInterrupted) -> None:
+        ignore_stop_signals()  # a second Ctrl-C must not cut the bookkeeping short
+        interrupted = [j["config_hash"] for j in getattr(self.executor, "running", [])]
+        finished = self.progress.done - self.failed
+        summary = self.summary(finished, interrupted=interrupted, stopped_by=str(stop))
+        self.tracker.interrupt(asdict(summary))
+        self.folder.summary_file.write_text(json.dumps(asdict(summary), indent=1))
+        LOG.info(f"[{self.name}] {stop}: finished {finished}, failed {self.failed}, interrupted "
+                 f"{len(interrupted)}, not started {len(self.todo) - self.progress.done - len(interrupted)} of "
+                 f"{len(self.todo)} jobs; relaunch the same command to resume (interrupted jobs continue from "
+                 f"their last round checkpoint)")
+
+    def finish(self) -> SweepSummary:
+        summary = self.summary(len(self.todo) - self.failed, untracked=self.untracked)
+        try:
+            self.tracker.end(asdict(summary))
+        except Exception as err:
+            LOG.warning(f"[{self.name}] warning: could not close the sweep's MLflow run: "
+                        f"{str(err).splitlines()[0][:300]}")
+        if self.untracked:
+            LOG.info(f"[{self.name}] {len(self.untracked)} finished job(s) could not be tracked "
+                     f"({', '.join(self.untracked)}); their results are in records.parquet and jobs/<hash>/: "
+                     f"once the tracking server is back, relaunch the same command with tracking_sync=true")
+        self.folder.summary_file.write_text(json.dumps(asdict(summary), indent=1))
+        return summary
 
 
 def sync_tracking(cfg: DictConfig) -> dict:
