@@ -22,7 +22,8 @@ def load(scene_dir, cfg):
 
 def comparable(result):
     d = result.to_dict()
-    drop = ("train_seconds", "per_candidate_ms", "selection_seconds", "fisher_seconds", "peak_rss_mb")
+    drop = ("train_seconds", "per_candidate_ms", "selection_seconds", "selection_cpu_seconds", "fisher_seconds",
+            "peak_rss_mb")
     d["rounds"] = [{k: v for k, v in r.items() if k not in drop} for r in d["rounds"]]
     d.pop("wall_seconds")
     return d
@@ -46,6 +47,10 @@ def test_episode_end_to_end_records_every_round(gopre_run):
     for r in result.rounds[:-1]:
         assert len(r.selected) == 1 and r.selected[0] in r.scores
         assert len(r.scores) == r.candidates and r.per_candidate_ms > 0 and r.peak_rss_mb > 0
+        # the selection's CPU time: measured, and of the order of its wall time (1-2 threads here)
+        assert 0 < r.selection_cpu_seconds <= 2.5 * r.selection_seconds + 0.05
+        assert r.test_ssim is not None and r.test_ssim_skimage is not None
+    assert result.rounds[-1].selection_cpu_seconds is None  # no selection after the final training
     assert result.rounds[-1].iteration == cfg.fit.iterations
     assert result.final.test_views == len(result.test_ids)
     assert result.final.lpips is None and result.final.lpips_status == "LPIPS disabled in the config"

@@ -181,7 +181,9 @@ class Episode:
                                self.pool.cameras[self.taken], self.background, self.generator,
                                self.pool.cameras[rec.probes], self.images(self.pool, self.taken),
                                self.trainer.settings)
+        cpu = time.process_time()
         sel = self.strategy.select(ctx, count)
+        rec.selection_cpu_seconds = round(time.process_time() - cpu, 3)
         rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)
         rec.per_candidate_ms = round(sel.seconds_per_candidate * 1e3, 3)
         rec.selection_seconds = round(sel.round_seconds, 3)

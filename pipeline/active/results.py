@@ -52,6 +52,9 @@ class RoundRecord:
     fisher_seconds: float = 0.0
     peak_rss_mb: float = 0.0
     test_ssim_skimage: float | None = None  # scikit-image's SSIM of the same views
+    # the selection's CPU time (every thread of the process): unlike the wall time it does not grow
+    # when other jobs share the cores, so per-round costs of concurrent jobs stay comparable
+    selection_cpu_seconds: float | None = None
 
     @classmethod
     def from_dict(cls, data: dict) -> "RoundRecord":

@@ -45,16 +45,24 @@ def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dic
     rows = [{**base, "kind": "round", "num_views": r.num_views, "iteration": r.iteration,
              "psnr": r.test_psnr, "ssim": r.test_ssim, "ssim_skimage": r.test_ssim_skimage,
              "num_gaussians": r.num_gaussians, "per_candidate_ms": r.per_candidate_ms or None,
-             "selection_seconds": r.selection_seconds or None, "peak_rss_mb": r.peak_rss_mb,
+             "selection_seconds": r.selection_seconds or None,
+             "selection_cpu_seconds": r.selection_cpu_seconds or None, "peak_rss_mb": r.peak_rss_mb,
              "selected": json.dumps(r.selected)} for r in rounds]
     picks = [r for r in rounds if r.selected]
     rows.append({**base, "kind": "final", "num_views": rounds[-1].num_views if rounds else None,
                  **final_columns(episode.final), "wall_seconds": seconds,
                  "per_candidate_ms": float(np.mean([r.per_candidate_ms for r in picks])) if picks else None,
                  "selection_seconds": float(np.mean([r.selection_seconds for r in picks])) if picks else None,
+                 "selection_cpu_seconds": _mean_present([r.selection_cpu_seconds for r in picks]),
                  "peak_rss_mb": max((r.peak_rss_mb for r in rounds), default=None),
                  "selected": json.dumps(episode.selected), "initial": json.dumps(episode.initial)})
     return rows
+
+
+def _mean_present(values: list) -> float | None:
+    """The mean of the values that were measured (None: none was, e.g. a record older than the field)."""
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
 
 
 def final_columns(final: FinalMetrics) -> dict:

@@ -47,7 +47,8 @@ def round_metrics(r: RoundRecord) -> list[tuple[str, float, int]]:
            ("test_ssim_skimage", r.test_ssim_skimage, step), ("num_gaussians", r.num_gaussians, step)]
     if r.selected:
         out += [("per_candidate_ms", r.per_candidate_ms, step),
-                ("selection_seconds", r.selection_seconds, step)]
+                ("selection_seconds", r.selection_seconds, step),
+                ("selection_cpu_seconds", r.selection_cpu_seconds, step)]
     return out
 
 
