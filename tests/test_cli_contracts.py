@@ -29,20 +29,20 @@ def first_job(*overrides):
 
 
 def test_config_hash_ignores_where_and_how_a_job_runs():
-    base = first_job()["config_hash"]
+    base = first_job().config_hash
     for override in ("output_dir=/elsewhere/out", "data_root=/some/data", "job.threads=2",
                      "job.device=cuda", "job.retries=5", "executor=ray", "tracking=mlflow",
                      "name=another_sweep"):
-        assert first_job(override)["config_hash"] == base, override
+        assert first_job(override).config_hash == base, override
 
 
 def test_config_hash_changes_with_anything_computed():
-    base = first_job()["config_hash"]
+    base = first_job().config_hash
     for override in ("seeds=[1]", "splat.iterations=100", "splat.epochs_per_view=3",
                      "protocol.budget=5", "protocol.probes=3", "method.gopre.options.tau=0.5",
                      "splat.post_selection=continue", "dataset.generated.generate.seed=1",
                      "job.renders=2"):
-        assert first_job(override)["config_hash"] != base, override
+        assert first_job(override).config_hash != base, override
 
 
 def test_config_hash_golden_value():
@@ -50,7 +50,7 @@ def test_config_hash_golden_value():
     a changed job skipped). Update it only on purpose, and say so in the change.
     Changed on purpose for results revision "fidelity-1" (issue 26; was 5b06dfba81dfd51f): the
     fidelity fixes change what every job computes, so no result of the code before them is reused."""
-    assert first_job()["config_hash"] == "5a8deb5236736840"
+    assert first_job().config_hash == "5a8deb5236736840"
 
 
 def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():
@@ -63,7 +63,7 @@ def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():
     fit, before = episode_config(job).fit, episode_config(base).fit
     assert (fit.lr.means_init, fit.densify.grad_threshold, fit.ssim_weight, fit.image_width) == (1e-4, 3e-4, 0.3, 40)
     assert fit.lr.sh0 == before.lr.sh0 and fit.densify.interval == before.densify.interval
-    assert job["config_hash"] != base["config_hash"] and "fit" not in base["splat"]
+    assert job.config_hash != base.config_hash and "fit" not in base.splat
     for override, match in (("+splat.fit.lr.mean_init=1e-4", r"splat\.fit\.lr\.mean_init: unknown"),
                             ("+splat.fit.densify.max_gaussians=abc", r"splat\.fit\.densify\.max_gaussians: expected int"),
                             ("+splat.fit.iterations=50", r"splat\.fit\.iterations: set the recipe's length"),
@@ -89,15 +89,15 @@ def test_plan_lists_the_hyperparameters_the_jobs_run_with(tmp_path):
 
 def test_the_results_revision_is_part_of_the_hash():
     job = first_job()
-    assert job["results_revision"] == "fidelity-1"
-    assert config_hash({**job, "results_revision": "fidelity-0"}) != job["config_hash"]
+    assert job.results_revision == "fidelity-1"
+    assert config_hash({**job.to_dict(), "results_revision": "fidelity-0"}) != job.config_hash
 
 
 def test_config_hash_is_the_hash_of_the_job_without_execution_keys():
     job = first_job()
-    moved = {**job, "execution": {"threads": 99}, "scene_path": "/x", "index": 7, "code_version": "z",
+    moved = {**job.to_dict(), "execution": {"threads": 99}, "scene_path": "/x", "index": 7, "code_version": "z",
              "sweep": "other"}  # and its own config_hash key: recomputing gives the same value
-    assert config_hash(moved) == job["config_hash"]
+    assert config_hash(moved) == job.config_hash
 
 
 def run_cli(*args, cwd=None):

@@ -55,21 +55,21 @@ def test_every_preset_composes_at_paper_scale_and_says_how_to_run_it(preset):
     text = (CONF_DIR / "experiment" / f"{preset}.yaml").read_text()
     assert text.startswith("# @package _global_") and "gopre-run experiment=" + preset in text
     jobs = expand_jobs(composed([f"experiment={preset}", "data_root=/datasets"]))
-    assert jobs and len({j["config_hash"] for j in jobs}) == len(jobs)
+    assert jobs and len({j.config_hash for j in jobs}) == len(jobs)
     if preset not in ("demo", "debug", "science", "science_ablation"):  # CPU-scale presets
-        assert jobs[0]["splat"]["preset"] == "paper"
-        assert all(j["scene_path"].startswith("/datasets/") for j in jobs)
+        assert jobs[0].splat["preset"] == "paper"
+        assert all(j.scene_path.startswith("/datasets/") for j in jobs)
 
 
 def test_method_presets_carry_their_protocol_and_splat_overrides():
     """fisherrf_released reloads the model after each pick as the released code does; the other
     methods keep the sweep's policy; popgs defaults to the POp-GS paper's block variant."""
-    jobs = {j["method"]: j for j in expand_jobs(composed([
+    jobs = {j.method: j for j in expand_jobs(composed([
         "method=[fisherrf,fisherrf_released,popgs,popgs_diag]", "splat.post_selection=continue"]))}
-    assert jobs["fisherrf_released"]["splat"]["post_selection"] == "reload"
-    assert jobs["fisherrf_released"]["options"] == {"lam": 1e-6, "hessian": "fisherrf_released"}
-    assert jobs["fisherrf"]["splat"]["post_selection"] == "continue"
-    assert jobs["popgs"]["options"]["variant"] == "block" and jobs["popgs_diag"]["options"]["variant"] == "diag"
+    assert jobs["fisherrf_released"].splat["post_selection"] == "reload"
+    assert jobs["fisherrf_released"].options == {"lam": 1e-6, "hessian": "fisherrf_released"}
+    assert jobs["fisherrf"].splat["post_selection"] == "continue"
+    assert jobs["popgs"].options["variant"] == "block" and jobs["popgs_diag"].options["variant"] == "diag"
     with pytest.raises(ConfigError, match="method.fisherrf: .*hessian must be one of"):
         expand_jobs(composed(["method=[fisherrf]", "+method.fisherrf.options.hessian=nope"]))
 
@@ -80,19 +80,19 @@ ABLATIONS = sorted(p.stem for p in (CONF_DIR / "ablation").glob("*.yaml"))
 @pytest.mark.parametrize("ablation", ABLATIONS)
 def test_every_science_ablation_is_one_axis_on_lego_with_three_seeds(ablation):
     jobs = expand_jobs(composed(["experiment=science_ablation", f"ablation={ablation}", "data_root=/datasets"]))
-    assert {j["sweep"] for j in jobs} == {f"science_ablation_{ablation}"}
-    assert {j["scene"] for j in jobs} == {"lego"} and {j["seed"] for j in jobs} == {0, 1, 2}
-    axes = {tuple(j["axes"]) for j in jobs}
+    assert {j.sweep for j in jobs} == {f"science_ablation_{ablation}"}
+    assert {j.scene for j in jobs} == {"lego"} and {j.seed for j in jobs} == {0, 1, 2}
+    axes = {tuple(j.axes) for j in jobs}
     assert len(axes) == 1 and len(next(iter(axes))) == 1  # one axis
-    values = {tuple(j["axes"].values()) for j in jobs}
-    assert len(values) >= 2 and len(jobs) == 3 * len(values) * len({j["method"] for j in jobs})
+    values = {tuple(j.axes.values()) for j in jobs}
+    assert len(values) >= 2 and len(jobs) == 3 * len(values) * len({j.method for j in jobs})
 
 
 def test_the_fisherrf_policy_ablation_crosses_both_hessians_with_both_policies():
     """The ablation sets its methods (it comes after the experiment in the defaults), and its axis
     overrides the policy that fisherrf_released's preset carries."""
     jobs = expand_jobs(composed(["experiment=science_ablation", "ablation=fisherrf_policy", "data_root=/d"]))
-    cells = {(j["method"], j["options"].get("hessian", "exact"), j["splat"]["post_selection"]) for j in jobs}
+    cells = {(j.method, j.options.get("hessian", "exact"), j.splat["post_selection"]) for j in jobs}
     assert cells == {(m, h, p) for m, h in (("fisherrf", "exact"), ("fisherrf_released", "fisherrf_released"))
                      for p in ("reset_opacity", "reload")}
 
@@ -246,7 +246,7 @@ def test_a_corrupt_scene_is_refused_before_anything_starts(base):
     listed at once, each naming its dataset key."""
     out = base / "refused"
     cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "tracking=mlflow"])
-    good = Path(expand_jobs(cfg)[0]["scene_path"]).resolve()  # <out>/../scenes/...: out is not made yet
+    good = Path(expand_jobs(cfg)[0].scene_path).resolve()  # <out>/../scenes/...: out is not made yet
     if not (good / "transforms_test.json").exists():
         run_sweep(composed(["experiment=debug", *TINY, f"output_dir={base / 'gen'}", "method=[random]"]))
     broken_scene(good, out / "data" / "broken")
@@ -273,7 +273,7 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base, monk
     cfg = composed(["experiment=debug", *TINY, f"output_dir={out}", "method=[random]", "job.retries=1",
                     "tracking=mlflow"])
     run_sweep(cfg)  # generates the good scene and runs it
-    good = Path(expand_jobs(cfg)[0]["scene_path"])
+    good = Path(expand_jobs(cfg)[0].scene_path)
     shutil.copytree(good, out / "data" / "flaky")
     real = job_module.run_episode
 
@@ -346,7 +346,7 @@ def test_a_tracking_server_that_goes_away_loses_nothing_and_a_sync_replays_it(ba
     calls = []
 
     def log_then_stop_the_server(self, job, outcome):
-        calls.append(job["config_hash"])
+        calls.append(job.config_hash)
         run_id = real_log_job(self, job, outcome)
         if len(calls) == 1:
             stop(server)  # the server goes away after the first tracked job
@@ -549,11 +549,11 @@ def test_a_truncated_image_the_protocol_uses_is_refused_before_any_job(base, tmp
     jobs = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", f"output_dir={tmp_path / 'o'}"]))
     validate_sweep(jobs)  # generates the tiny scene when it is not there yet
     scene = tmp_path / "copy"
-    shutil.copytree(Path(jobs[0]["scene_path"]).resolve(), scene)
+    shutil.copytree(Path(jobs[0].scene_path).resolve(), scene)
     victim = sorted((scene / "train").glob("*.png"))[3]
     victim.write_bytes(victim.read_bytes()[:120])  # a truncated file: its header (and size) still read
     for job in jobs:
-        job["scene_path"] = str(scene)
+        job.scene_path = str(scene)
     with pytest.raises(ConfigError, match=rf"{victim.name}: cannot read image"):  # named, at launch
         validate_sweep(jobs)
     validate_sweep(jobs, decode_images=False)  # the flag for datasets too large to read twice

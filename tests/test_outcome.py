@@ -100,3 +100,25 @@ def test_a_round_message_is_light_plain_data_and_comes_back_the_same():
     message.images = {"picked": b"png"}
     again = RoundMessage.from_dict(pickle.loads(pickle.dumps(message.to_dict())))
     assert again == message
+
+
+def test_a_job_is_the_plain_form_the_hash_and_jobs_json_were_made_of():
+    """Job.to_dict() is key for key the dict every finished sweep's jobs.json holds (and whose
+    hash the config hash is): across Ray and back through JSON it comes back equal."""
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.cli.run import CONF_DIR
+    from pipeline.experiment.build import config_hash, expand_jobs
+    from pipeline.experiment.spec import Execution, Job
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        job = expand_jobs(compose("config", ["experiment=debug", "method=[gopre]"]))[0]
+    plain = job.to_dict()
+    assert list(plain)[:3] == ["sweep", "results_revision", "kind"] and isinstance(plain["execution"], dict)
+    assert config_hash(plain) == config_hash(job) == job.config_hash
+    again = Job.from_dict(json.loads(json.dumps(plain)))
+    assert again == job and isinstance(again.execution, Execution)
+    assert job.label == f"gopre on {job.scene} (seed 0)"
+    with pytest.raises(ValueError, match="unknown keys.*'threads'"):
+        Job.from_dict({**plain, "threads": 2})
+    with pytest.raises(ValueError, match="missing keys.*'splat'"):
+        Job.from_dict({k: v for k, v in plain.items() if k != "splat"})

@@ -24,20 +24,20 @@ def test_plan_lists_jobs_marks_finished_ones_and_estimates_the_rest(tmp_path):
     out = tmp_path / "sweep"
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         jobs = expand_jobs(compose("config", [*COMMON, f"output_dir={out}"]))
-    done = next(j for j in jobs if j["method"] == "gopre" and j["seed"] == 0)
+    done = next(j for j in jobs if j.method == "gopre" and j.seed == 0)
     out.mkdir()
-    pd.DataFrame([{"config_hash": done["config_hash"], "kind": "final", "status": "FINISHED",
-                   "dataset": done["dataset"], "scene": done["scene"], "method": "gopre", "setting": "",
+    pd.DataFrame([{"config_hash": done.config_hash, "kind": "final", "status": "FINISHED",
+                   "dataset": done.dataset, "scene": done.scene, "method": "gopre", "setting": "",
                    "wall_seconds": 150.0, "code_version": None}]).to_parquet(out / "records.parquet")
     proc = run_plan(f"output_dir={out}")
     assert proc.returncode == 0, proc.stderr
     lines = {line.split()[6]: line for line in proc.stdout.splitlines() if line[:1].isdigit()}
-    assert set(lines) == {j["config_hash"] for j in jobs} and len(jobs) == 4
-    assert "finished" in lines[done["config_hash"]]
-    other_gopre = next(j for j in jobs if j["method"] == "gopre" and j["seed"] == 1)
-    assert lines[other_gopre["config_hash"]].split()[-4:] == ["to", "run", "2", "min"]  # 150 s, as the finished gopre
-    random0 = next(j for j in jobs if j["method"] == "random" and j["seed"] == 0)
-    assert lines[random0["config_hash"]].endswith("unknown")
+    assert set(lines) == {j.config_hash for j in jobs} and len(jobs) == 4
+    assert "finished" in lines[done.config_hash]
+    other_gopre = next(j for j in jobs if j.method == "gopre" and j.seed == 1)
+    assert lines[other_gopre.config_hash].split()[-4:] == ["to", "run", "2", "min"]  # 150 s, as the finished gopre
+    random0 = next(j for j in jobs if j.method == "random" and j.seed == 0)
+    assert lines[random0.config_hash].endswith("unknown")
     assert "4 jobs, 1 finished, 3 to run; about 8 min on 1 parallel slot(s)" in proc.stdout
     assert not (out / "jobs").exists() and not (out / "jobs.json").exists()
 

@@ -101,9 +101,10 @@ def test_report_cli_writes_paired_tables_against_the_chosen_reference(study, tmp
 
 def test_sweeps_run_seed_by_seed_so_an_early_stop_leaves_complete_pairs():
     from pipeline.experiment.sweep import execution_order
-    jobs = [{"method": m, "seed": s, "index": i} for i, (m, s) in
+    from types import SimpleNamespace
+    jobs = [SimpleNamespace(method=m, seed=s, index=i) for i, (m, s) in
             enumerate((m, s) for m in ("gopre", "random") for s in (0, 1, 2))]
-    order = [(j["seed"], j["method"]) for j in execution_order(jobs)]
+    order = [(j.seed, j.method) for j in execution_order(jobs)]
     assert order == [(0, "gopre"), (0, "random"), (1, "gopre"), (1, "random"), (2, "gopre"), (2, "random")]
 
 

@@ -377,7 +377,7 @@ def test_a_sweep_folder_lists_its_jobs_and_a_moved_scene_is_found_with_data_root
     copy = tmp_path / "copied"
     shutil.copytree(sweep, copy, ignore=shutil.ignore_patterns("mlflow.db", "mlartifacts"))
     run = load_run(str(job_dir))
-    scene = Path(run.job["scene_path"]).resolve()
+    scene = Path(run.job.scene_path).resolve()
     moved = tmp_path / "data" / scene.name
     shutil.copytree(scene, moved)
     jobs = json.loads((copy / "jobs.json").read_text())

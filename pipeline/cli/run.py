@@ -63,8 +63,8 @@ def main(cfg: DictConfig) -> None:
             print(f"{command_name('run')}: config error: {err}", file=sys.stderr)
             sys.exit(2)
         try:  # the data as a real launch checks it (a scene still to be generated is not read)
-            validate_sweep([j for j in jobs if not (j.get("generate") and not (
-                Path(j["scene_path"]) / "transforms_test.json").exists())],
+            validate_sweep([j for j in jobs if not (j.generate and not (
+                Path(j.scene_path) / "transforms_test.json").exists())],
                 bool(cfg.get("validate_images", True)))
         except ConfigError as err:
             print(f"{command_name('run')}: config error: {err}", file=sys.stderr)

@@ -24,6 +24,7 @@ from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.provenance import code_version
+from pipeline.experiment.spec import Job
 
 JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: overrides for this method
@@ -50,9 +51,10 @@ def check_keys(section: str, data: dict, allowed: set[str]) -> None:
         raise ConfigError(f"{section}: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
 
 
-def config_hash(job: dict) -> str:
-    """Stable hash of what a job computes (no paths, no execution settings)."""
-    core = {k: v for k, v in job.items() if k not in NOT_HASHED}
+def config_hash(job: dict | Job) -> str:
+    """Stable hash of what a job computes (no paths, no execution settings), of its plain form."""
+    plain = job.to_dict() if isinstance(job, Job) else job
+    core = {k: v for k, v in plain.items() if k not in NOT_HASHED}
     return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -126,7 +128,7 @@ def check_job_section(job_cfg: dict) -> None:
             _minimum(f"job.{key}", job_cfg[key], least)
 
 
-def expand_jobs(cfg: DictConfig) -> list[dict]:
+def expand_jobs(cfg: DictConfig) -> list[Job]:
     """Every job of the sweep, validated, in a deterministic order."""
     datasets, methods = _container(cfg, "dataset"), _container(cfg, "method")
     protocol, splat, job_cfg = _container(cfg, "protocol"), _container(cfg, "splat"), _container(cfg, "job")
@@ -170,16 +172,17 @@ def expand_jobs(cfg: DictConfig) -> list[dict]:
                                 "round_images": int(job_cfg.get("round_images") or 0) if tracked else 0,
                                 "round_models": bool(job_cfg.get("round_models") or False),
                                 "job_dir": str(SweepFolder(output_dir).job(job["config_hash"]).path)}
-            validate_job(job)
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)
             job["code_version"] = code_version()
-            jobs.append(job)
+            typed = Job.from_dict(job)
+            validate_job(typed)
+            jobs.append(typed)
     return jobs
 
 
-def episode_config(job: dict) -> EpisodeConfig:
+def episode_config(job: Job) -> EpisodeConfig:
     """The core's plain dataclass for a job (the core never sees a DictConfig)."""
-    splat = dict(job["splat"])
+    splat = dict(job.splat)
     check_keys("splat", splat, SPLAT_KEYS)
     for key in POSITIVE_SPLAT:  # 0 is not "unset": it would silently mean the preset's value
         if splat.get(key) is not None:
@@ -198,19 +201,19 @@ def episode_config(job: dict) -> EpisodeConfig:
                 fit = fit.with_overrides(dict(splat["fit"]))
             except ValueError as err:
                 raise ConfigError(f"splat.fit.{err}") from None
-        fit = fit.with_changes(seed=job["seed"])
-        protocol = _protocol(job["protocol"])
+        fit = fit.with_changes(seed=job.seed)
+        protocol = _protocol(job.protocol)
         changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
                                           "views_per_round", "pool_keep_fraction", "lpips", "init")
                    if splat.get(k) is not None}
         if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
             changes["curve_test_views"] = None
-        return replace(base, fit=fit, protocol=protocol, strategy=job["strategy"],
-                       strategy_options=dict(job["options"]), seed=job["seed"], **changes)
+        return replace(base, fit=fit, protocol=protocol, strategy=job.strategy,
+                       strategy_options=dict(job.options), seed=job.seed, **changes)
     except ConfigError:
         raise
     except (ValueError, TypeError) as err:
-        raise ConfigError(f"splat/protocol of job {job['method']} on {job['scene']}: {err}") from None
+        raise ConfigError(f"splat/protocol of job {job.method} on {job.scene}: {err}") from None
 
 
 def _protocol(data: dict) -> ProtocolConfig:
@@ -221,19 +224,19 @@ def _protocol(data: dict) -> ProtocolConfig:
         raise ConfigError(str(err) if str(err).startswith("protocol") else f"protocol: {err}") from None
 
 
-def uncertainty_config(job: dict) -> UncertaintyConfig:
-    data = dict(job["uncertainty"] or {})
+def uncertainty_config(job: Job) -> UncertaintyConfig:
+    data = dict(job.uncertainty or {})
     check_keys("uncertainty", data, {f.name for f in fields(UncertaintyConfig)})
     if "methods" in data:
         data["methods"] = tuple(data["methods"])
-    return UncertaintyConfig(**data, seed=job["seed"])
+    return UncertaintyConfig(**data, seed=job.seed)
 
 
-def validate_job(job: dict) -> None:
+def validate_job(job: Job) -> None:
     episode_config(job)
     try:
-        make_strategy(job["strategy"], **job["options"])
+        make_strategy(job.strategy, **job.options)
     except ValueError as err:
-        raise ConfigError(f"method.{job['method']}: {err}") from None
-    if job["kind"] == "uncertainty":
+        raise ConfigError(f"method.{job.method}: {err}") from None
+    if job.kind == "uncertainty":
         uncertainty_config(job)

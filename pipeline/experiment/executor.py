@@ -23,6 +23,7 @@ from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_h
                                            install_stop_handlers, restore_handlers)
 from pipeline.experiment.job import run_with_retries
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
+from pipeline.experiment.spec import Job
 
 OnDone = Callable[[dict, JobOutcome], None]
 OnRound = Callable[[dict, RoundMessage], None]
@@ -33,9 +34,9 @@ class LocalExecutor:
     slots = 1
 
     def __init__(self):
-        self.running: list[dict] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
+        self.running: list[Job] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
 
-    def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
+    def map(self, jobs: list[Job], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
         for job in jobs:
             report = None if on_round is None else (lambda message, job=job: on_round(job, message))
@@ -45,27 +46,29 @@ class LocalExecutor:
             on_done(job, outcome)
 
 
-def scene_key(job: dict) -> str:
-    return f"{job['scene_path']}@{job['splat'].get('image_width')}/{job['splat']['preset']}"
+def scene_key(job: Job) -> str:
+    return f"{job.scene_path}@{job.splat.get('image_width')}/{job.splat['preset']}"
 
 
-def _remote_run(job: dict, scene: Scene | None, queue=None) -> dict:
-    """A Ray task: the outcome as plain data (``JobOutcome.to_dict``)."""
+def _remote_run(plain_job: dict, scene: Scene | None, queue=None) -> dict:
+    """A Ray task: the job arrives and the outcome leaves as plain data (``Job.to_dict``,
+    ``JobOutcome.to_dict``)."""
+    job = Job.from_dict(plain_job)
     report = None
     if queue is not None:
         def report(message: RoundMessage) -> None:
-            queue.put_nowait((job["config_hash"], message.to_dict()))
+            queue.put_nowait((job.config_hash, message.to_dict()))
     return run_with_retries(job, scene, report).to_dict()
 
 
 class RoundChannel:
     """Round messages from Ray tasks to the driver, through a Ray queue actor that takes no CPU."""
 
-    def __init__(self, jobs: list[dict], on_round: OnRound):
+    def __init__(self, jobs: list[Job], on_round: OnRound):
         from ray.util.queue import Queue
 
         self.queue = Queue(actor_options={"num_cpus": 0})
-        self.jobs = {job["config_hash"]: job for job in jobs}
+        self.jobs = {job.config_hash: job for job in jobs}
         self.on_round = on_round
 
     def drain(self) -> None:
@@ -86,7 +89,7 @@ class RayExecutor:
         self.address, self.num_cpus = address, num_cpus
         self.gpus_per_job, self.max_retries = gpus_per_job, max_retries
         self.slots = 1
-        self.running: list[dict] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
+        self.running: list[Job] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
 
     def _start(self):
         """Ray, and whether this call started it (then ``map`` shuts it down again)."""
@@ -102,7 +105,7 @@ class RayExecutor:
                      log_to_driver=False)
         return ray, True
 
-    def map(self, jobs: list[dict], scenes: dict[str, Scene], on_done: OnDone,
+    def map(self, jobs: list[Job], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
         previous = current_handlers()  # restored when the sweep ends
         ray, started_here, channel, pending = None, False, None, {}
@@ -117,14 +120,14 @@ class RayExecutor:
                 channel = RoundChannel(jobs, on_round) if on_round is not None else None
                 refs = {key: ray.put(scene) for key, scene in scenes.items()}  # once per scene
             cpus = ray.cluster_resources().get("CPU", 1)
-            self.slots = max(1, int(cpus // max(1, min(j["execution"]["threads"] for j in jobs)))) if jobs else 1
+            self.slots = max(1, int(cpus // max(1, min(j.execution.threads for j in jobs)))) if jobs else 1
             task = ray.remote(_remote_run)
             with critical():
                 for job in jobs:
-                    options = {"num_cpus": job["execution"]["threads"], "num_gpus": self.gpus_per_job,
-                               "max_retries": self.max_retries, "name": f"{job['method']}:{job['scene']}"}
+                    options = {"num_cpus": job.execution.threads, "num_gpus": self.gpus_per_job,
+                               "max_retries": self.max_retries, "name": f"{job.method}:{job.scene}"}
                     queue = channel.queue if channel is not None else None
-                    pending[task.options(**options).remote(job, refs.get(scene_key(job)), queue)] = job
+                    pending[task.options(**options).remote(job.to_dict(), refs.get(scene_key(job)), queue)] = job
             while pending:
                 with critical():
                     done, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_SECONDS)
@@ -150,7 +153,7 @@ class RayExecutor:
             restore_handlers(previous)  # the caller's handlers (the CLI's own, or a test runner's)
 
     @staticmethod
-    def _cancel(ray, pending: dict) -> list[dict]:
+    def _cancel(ray, pending: dict) -> list[Job]:
         """Cancel every pending task (force: the worker processes stop); returns the jobs that
         had started (those that never started are simply not run)."""
         started = []
@@ -159,7 +162,7 @@ class RayExecutor:
                 ray.cancel(ref, force=True)
             except Exception:  # already finished or gone: nothing to stop
                 pass
-            if Path(job["execution"]["job_dir"]).exists():  # run_job made its folder: it started
+            if Path(job.execution.job_dir).exists():  # run_job made its folder: it started
                 started.append(job)
         return started
 

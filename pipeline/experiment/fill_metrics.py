@@ -32,6 +32,7 @@ from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.scene_lookup import scene_of
 from pipeline.splat import ply
+from pipeline.experiment.spec import Job
 
 PSNR_TOLERANCE_DB = 1e-6
 SSIM_TOLERANCE = 1e-9
@@ -48,10 +49,10 @@ class FillReport:
         return out + "".join(f"\n  refused {h}: {why}" for h, why in self.refused.items())
 
 
-def read_jobs(sweep: SweepFolder) -> list[dict]:
+def read_jobs(sweep: SweepFolder) -> list[Job]:
     if not sweep.jobs_file.exists():
         raise ValueError(f"{sweep.path}: no jobs.json (not a sweep folder)")
-    return json.loads(sweep.jobs_file.read_text())
+    return sweep.read_jobs()
 
 
 def fill_ssim(folder: str | Path, data_root: str | None = None,
@@ -61,30 +62,30 @@ def fill_ssim(folder: str | Path, data_root: str | None = None,
     report = FillReport()
     scenes: dict = {}  # (scene, width) -> Scene: a sweep's jobs share a few scenes
     for job in read_jobs(sweep):
-        if job["kind"] != "episode":
+        if job.kind != "episode":
             continue
-        layout = sweep.job(job["config_hash"])
+        layout = sweep.job(job.config_hash)
         if not layout.result_file.exists():
             continue
         episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
         if episode.final.metrics_version >= METRICS_VERSION:
-            report.current.append(job["config_hash"])
+            report.current.append(job.config_hash)
             continue
         try:
             filled = filled_episode(job, layout, episode, data_root, scenes)
         except ValueError as err:
-            report.refused[job["config_hash"]] = str(err)
+            report.refused[job.config_hash] = str(err)
             continue
         write_result(layout, filled)
         if not records.frame.empty:
-            records.add(filled_rows(records.frame, job["config_hash"], filled))
-        report.filled.append(job["config_hash"])
-        progress(f"{job['method']} on {job['scene']} (seed {job['seed']}): SSIM {filled.final.ssim:.4f} "
+            records.add(filled_rows(records.frame, job.config_hash, filled))
+        report.filled.append(job.config_hash)
+        progress(f"{job.method} on {job.scene} (seed {job.seed}): SSIM {filled.final.ssim:.4f} "
                  f"(scikit-image {filled.final.ssim_skimage:.4f})")
     return report
 
 
-def filled_episode(job: dict, layout: JobFolder, episode: EpisodeResult, data_root: str | None,
+def filled_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_root: str | None,
                    scenes: dict | None = None) -> EpisodeResult:
     """The episode with its final 3DGS SSIM computed from ``artifacts/model.ply``; ValueError when
     the model does not reproduce the recorded PSNR and scikit-image SSIM. ``scenes`` caches the
@@ -92,7 +93,7 @@ def filled_episode(job: dict, layout: JobFolder, episode: EpisodeResult, data_ro
     if not layout.model_file.exists():
         raise ValueError(f"no {layout.model_file}")
     scenes = {} if scenes is None else scenes
-    key = (job["scene_path"], episode.scene, episode_config(job).fit.image_width)
+    key = (job.scene_path, episode.scene, episode_config(job).fit.image_width)
     if key not in scenes:
         scenes[key] = scene_of(job, {"scene": episode.scene}, None, data_root)
     scene = scenes[key]

@@ -28,6 +28,7 @@ from pipeline.experiment.layout import MODEL, JobFolder
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage
 from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
+from pipeline.experiment.spec import Job
 
 
 def set_threads(threads: int) -> None:
@@ -82,15 +83,15 @@ def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.T
     return torch.cat([truth, render.clamp(0, 1), colormap(error), colormap(variance)], 1)
 
 
-def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
+def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = episode_config(job)
     rounds = len(episode_plan(scene, cfg).round_views) + 1
     pending_images: dict[int, dict[str, bytes]] = {}
 
     def on_selection(ep, rec):
-        if job["execution"].get("round_models"):  # the model that made this pick, for pipeline-view
+        if job.execution.round_models:  # the model that made this pick, for pipeline-view
             ply.save(ep.trainer.rendered_gaussians, JobFolder(folder).round_model(rec.round))
-        count = job["execution"].get("round_images", 0)
+        count = job.execution.round_images
         if count > 0 and report is not None:
             pending_images[rec.round] = round_images(ep, rec, count)
 
@@ -105,12 +106,12 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
     def on_resume(done: int):  # a retried, interrupted or relaunched job continues where it stopped
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
     result = run_episode(scene, cfg, JobFolder(folder).checkpoint_dir, on_round=on_round, on_selection=on_selection,
-                         device=job["execution"]["device"], on_resume=on_resume)
+                         device=job.execution.device, on_resume=on_resume)
     if result.final.degraded:
         _log(folder, f"warning: final PSNR {result.final.curve_psnr_drop:.2f} dB below the last "
                      "round's on the same views (degraded)")
     views = scene.split(result.test_split)
-    shown = result.test_ids[:job["renders"]]
+    shown = result.test_ids[:job.renders]
     with torch.no_grad():
         background = scene.background.to(result.gaussians.means)
         preds = render(result.gaussians, views.cameras[shown], background).rgb
@@ -128,7 +129,7 @@ def run_episode_job(job: dict, scene: Scene, folder: Path, report: Report | None
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 
-def run_uncertainty_job(job: dict, scene: Scene, folder: Path, report: Report | None = None) -> dict:
+def run_uncertainty_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     out = run_uncertainty_experiment(scene, episode_config(job), uncertainty_config(job))
     artifacts = {}
     for i, view in enumerate(out.map_ids):
@@ -140,26 +141,26 @@ def run_uncertainty_job(job: dict, scene: Scene, folder: Path, report: Report | 
     return {"result": result, "artifacts": artifacts}
 
 
-def run_job(job: dict, scene: Scene | None = None, report: Report | None = None) -> dict:
+def run_job(job: Job, scene: Scene | None = None, report: Report | None = None) -> dict:
     """Run one job once; ``scene`` comes from the object store, else it is read here;
     ``report`` hears every finished round (a ``RoundMessage``)."""
-    ex = job["execution"]
-    set_threads(ex["threads"])
-    folder = Path(ex["job_dir"])
+    ex = job.execution
+    set_threads(ex.threads)
+    folder = Path(ex.job_dir)
     folder.mkdir(parents=True, exist_ok=True)
     if scene is None:
-        scene = load_scene(job["scene_path"], width=episode_config(job).fit.image_width)
+        scene = load_scene(job.scene_path, width=episode_config(job).fit.image_width)
     start = time.perf_counter()
-    runner = run_uncertainty_job if job["kind"] == "uncertainty" else run_episode_job
+    runner = run_uncertainty_job if job.kind == "uncertainty" else run_episode_job
     outcome = runner(job, scene, folder, report)
     outcome["seconds"] = round(time.perf_counter() - start, 2)
     return outcome
 
 
-def run_with_retries(job: dict, scene: Scene | None = None, report: Report | None = None) -> JobOutcome:
+def run_with_retries(job: Job, scene: Scene | None = None, report: Report | None = None) -> JobOutcome:
     """``run_job`` with ``execution.retries`` re-runs after an exception; the outcome says
     FINISHED, or FAILED with the last traceback. Never raises for an application error."""
-    attempts = 1 + max(0, int(job["execution"]["retries"]))
+    attempts = 1 + max(0, int(job.execution.retries))
     errors = []
     for attempt in range(1, attempts + 1):
         try:
@@ -168,7 +169,7 @@ def run_with_retries(job: dict, scene: Scene | None = None, report: Report | Non
                               outcome["seconds"])
         except Exception:
             errors.append(traceback.format_exc())
-            folder = Path(job["execution"]["job_dir"])
+            folder = Path(job.execution.job_dir)
             folder.mkdir(parents=True, exist_ok=True)
             _log(folder, f"attempt {attempt}/{attempts} failed:\n{errors[-1]}")
     return JobOutcome.failed(attempts, errors)

@@ -12,10 +12,12 @@ through these two records instead of spelling the paths).
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.active.checkpoint import CHECKPOINT
+from pipeline.experiment.spec import Job
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,13 @@ class SweepFolder:
     @property
     def summary_file(self) -> Path:
         return self.path / "summary.json"
+
+    def read_jobs(self) -> list[Job]:
+        """The sweep's jobs, as its last launch wrote them."""
+        return [Job.from_dict(j) for j in json.loads(self.jobs_file.read_text())]
+
+    def write_jobs(self, jobs: list[Job]) -> None:
+        self.jobs_file.write_text(json.dumps([j.to_dict() for j in jobs], indent=1))
 
     def job(self, config_hash: str) -> JobFolder:
         return JobFolder(self.path / "jobs" / config_hash)

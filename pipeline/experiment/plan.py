@@ -12,11 +12,12 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.experiment.records import RecordsFile
+from pipeline.experiment.spec import Job
 
 
 @dataclass
 class PlannedJob:
-    job: dict
+    job: Job
     finished: bool
     estimate_s: float | None  # from finished jobs of the same kind; None when there are none
 
@@ -28,19 +29,19 @@ def _durations(records: pd.DataFrame) -> pd.DataFrame:
     return final[["dataset", "scene", "method", "setting", "wall_seconds"]].dropna(subset=["wall_seconds"])
 
 
-def estimate(job: dict, durations: pd.DataFrame) -> float | None:
+def estimate(job: Job, durations: pd.DataFrame) -> float | None:
     """Median wall time of finished jobs of the same kind: same dataset, scene, method and setting
     (any seed); else the same dataset and method; else None."""
     for keys in (("dataset", "scene", "method", "setting"), ("dataset", "method")):
         same = durations
         for k in keys:
-            same = same[same[k].fillna("") == (job.get(k) or "")]
+            same = same[same[k].fillna("") == (getattr(job, k) or "")]
         if not same.empty:
             return float(same["wall_seconds"].median())
     return None
 
 
-def hyperparameter_text(jobs: list[dict]) -> str:
+def hyperparameter_text(jobs: list[Job]) -> str:
     """Every hyperparameter the jobs' episodes run with, once per distinct set (the fit recipe
     after the preset, splat.iterations / image_width / max_gaussians and any +splat.fit.* overrides,
     then the episode's own settings), with the jobs (methods) that use it."""
@@ -53,7 +54,7 @@ def hyperparameter_text(jobs: list[dict]) -> str:
                   **{k: getattr(cfg, k) for k in ("epochs_per_view", "views_per_round", "pool_keep_fraction",
                                                   "post_selection", "curve_test_views", "lpips")}}
         text = "\n".join(f"  {k} = {v}" for k, v in values.items())
-        groups.setdefault(text, []).append(f"{job['method']} on {job['scene']}")
+        groups.setdefault(text, []).append(f"{job.method} on {job.scene}")
     out = []
     for text, users in groups.items():
         names = sorted(set(users))
@@ -64,19 +65,19 @@ def hyperparameter_text(jobs: list[dict]) -> str:
     return "\n".join(out)
 
 
-def plan_jobs(jobs: list[dict], output_dir: Path) -> list[PlannedJob]:
+def plan_jobs(jobs: list[Job], output_dir: Path) -> list[PlannedJob]:
     records = RecordsFile(output_dir)
     done = records.finished_hashes()
     durations = _durations(records.frame)
-    return [PlannedJob(j, j["config_hash"] in done, estimate(j, durations)) for j in jobs]
+    return [PlannedJob(j, j.config_hash in done, estimate(j, durations)) for j in jobs]
 
 
-def slots(executor: dict, jobs: list[dict]) -> int:
+def slots(executor: dict, jobs: list[Job]) -> int:
     """Jobs that run at once: the local executor 1; Ray the CPUs it gets over the job threads."""
     if executor.get("kind") != "ray" or not jobs:
         return 1
     cpus = executor.get("num_cpus") or os.cpu_count() or 1
-    return max(1, int(cpus) // max(1, min(int(j["execution"]["threads"]) for j in jobs)))
+    return max(1, int(cpus) // max(1, min(int(j.execution.threads) for j in jobs)))
 
 
 def format_duration(seconds: float) -> str:
@@ -93,8 +94,8 @@ def plan_text(name: str, planned: list[PlannedJob], parallel: int) -> str:
     for p in planned:
         j = p.job
         est = "-" if p.finished else (format_duration(p.estimate_s) if p.estimate_s is not None else "unknown")
-        rows.append([str(j["index"]), j["dataset"], j["scene"], j["method"], str(j["seed"]),
-                     j.get("setting") or "-", j["config_hash"], "finished" if p.finished else "to run", est])
+        rows.append([str(j.index), j.dataset, j.scene, j.method, str(j.seed),
+                     j.setting or "-", j.config_hash, "finished" if p.finished else "to run", est])
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [header] + rows]
     todo = [p for p in planned if not p.finished]

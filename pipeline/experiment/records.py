@@ -27,17 +27,18 @@ import pandas as pd
 
 from pipeline.active.results import EpisodeResult, FinalMetrics, UncertaintyResult
 from pipeline.experiment.outcome import JobOutcome
+from pipeline.experiment.spec import Job
 
 RECORDS = "records.parquet"
 
 
-def identity(job: dict, outcome: JobOutcome, run_id: str | None) -> dict:
-    return {"sweep": job["sweep"], "job_index": job.get("index"), "config_hash": job["config_hash"],
+def identity(job: Job, outcome: JobOutcome, run_id: str | None) -> dict:
+    return {"sweep": job.sweep, "job_index": job.index, "config_hash": job.config_hash,
             "run_id": run_id,
-            "status": outcome.status, "job_kind": job["kind"], "dataset": job["dataset"],
-            "scene": job["scene"], "method": job["method"], "strategy": job["strategy"],
-            "protocol": job["protocol"]["kind"], "seed": job["seed"], "setting": job["setting"],
-            "axes": json.dumps(job["axes"], sort_keys=True), "code_version": job.get("code_version")}
+            "status": outcome.status, "job_kind": job.kind, "dataset": job.dataset,
+            "scene": job.scene, "method": job.method, "strategy": job.strategy,
+            "protocol": job.protocol["kind"], "seed": job.seed, "setting": job.setting,
+            "axes": json.dumps(job.axes, sort_keys=True), "code_version": job.code_version}
 
 
 def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dict]:
@@ -84,12 +85,12 @@ def uncertainty_rows(base: dict, result: UncertaintyResult, seconds: float) -> l
     return rows
 
 
-def job_rows(job: dict, outcome: JobOutcome, run_id: str | None) -> list[dict]:
+def job_rows(job: Job, outcome: JobOutcome, run_id: str | None) -> list[dict]:
     base = identity(job, outcome, run_id)
     if not outcome.finished:
         return [{**base, "kind": "final", "error": outcome.traceback[-2000:],
                  "attempts": outcome.attempts}]
-    if job["kind"] == "uncertainty":
+    if job.kind == "uncertainty":
         rows = uncertainty_rows(base, outcome.uncertainty, outcome.seconds)
     else:
         rows = episode_rows(base, outcome.episode, outcome.seconds)

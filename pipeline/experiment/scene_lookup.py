@@ -8,9 +8,10 @@ from pathlib import Path
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.experiment.build import episode_config
+from pipeline.experiment.spec import Job
 
 
-def scene_candidates(job: dict, result: dict | None, scene: str | None = None,
+def scene_candidates(job: Job, result: dict | None, scene: str | None = None,
                      data_root: str | None = None) -> list[str]:
     """Where the job's scene may be: ``scene`` (given), under ``data_root`` (as <root>/<scene> or
     <root>/<dataset folder>/<scene>, for a sweep copied to another machine), then where it ran."""
@@ -18,14 +19,14 @@ def scene_candidates(job: dict, result: dict | None, scene: str | None = None,
         return [str(scene)]
     tried = []
     if data_root is not None:
-        ran = Path(job["scene_path"])
+        ran = Path(job.scene_path)
         tried += [str(Path(data_root) / ran.name), str(Path(data_root) / ran.parent.name / ran.name)]
     if result and result.get("scene"):
         tried.append(result["scene"])
-    return tried + [job["scene_path"]]
+    return tried + [job.scene_path]
 
 
-def scene_of(job: dict, result: dict | None, scene: str | None = None,
+def scene_of(job: Job, result: dict | None, scene: str | None = None,
              data_root: str | None = None) -> Scene:
     """The scene the job ran on, read at the episode's image width."""
     width = episode_config(job).fit.image_width
@@ -33,5 +34,5 @@ def scene_of(job: dict, result: dict | None, scene: str | None = None,
     for path in tried:
         if Path(path).exists():
             return load_scene(path, width=width)
-    raise ValueError(f"the scene of job {job['config_hash']} is not here: tried {', '.join(tried)} "
+    raise ValueError(f"the scene of job {job.config_hash} is not here: tried {', '.join(tried)} "
                      "(pass --scene PATH, or --data-root for a sweep copied from another machine)")

@@ -29,6 +29,7 @@ from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
 from pipeline.splat import ply
+from pipeline.experiment.spec import Job
 
 LOG = console()
 
@@ -57,7 +58,7 @@ class Progress:
         self.done = self.failed = 0
         self.job_seconds: list[float] = []
 
-    def update(self, job: dict, outcome: JobOutcome) -> None:
+    def update(self, job: Job, outcome: JobOutcome) -> None:
         self.done += 1
         self.failed += not outcome.finished
         left = self.total - self.done
@@ -65,28 +66,23 @@ class Progress:
         eta = sum(self.job_seconds) / len(self.job_seconds) * left / self.slots  # jobs alike, slots full
         running = min(left, self.slots)
         LOG.info(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
-                 f"ETA {eta / 60:.1f} min | {job_label(job)}: {outcome.status} "
+                 f"ETA {eta / 60:.1f} min | {job.label}: {outcome.status} "
                  f"{_headline(outcome)}")
         self.degraded(job, outcome)
 
-    def round(self, job: dict, message: RoundMessage) -> None:
+    def round(self, job: Job, message: RoundMessage) -> None:
         """One line per finished round of a running job."""
         rec = message.record
         what = "final" if message.final else f"round {rec.round + 1}/{message.rounds}"
-        LOG.info(f"[{self.name}] {job_label(job)}: {what}, {rec.num_views} views, "
+        LOG.info(f"[{self.name}] {job.label}: {what}, {rec.num_views} views, "
                  f"PSNR {rec.test_psnr:.2f} dB, {message.seconds:.0f} s")
 
-    def degraded(self, job: dict, outcome: JobOutcome) -> None:
+    def degraded(self, job: Job, outcome: JobOutcome) -> None:
         final = outcome.final
         if final is not None and final.degraded:
-            LOG.warning(f"[{self.name}] warning: {job_label(job)} ended on a degraded model: final PSNR "
+            LOG.warning(f"[{self.name}] warning: {job.label} ended on a degraded model: final PSNR "
                         f"{final.curve_psnr_drop:.2f} dB below its last round on the same views "
                         "(flagged in the records, MLflow tag degraded=true)")
-
-
-def job_label(job: dict) -> str:
-    setting = f", {job['setting']}" if job.get("setting") else ""
-    return f"{job['method']} on {job['scene']} (seed {job['seed']}{setting})"
 
 
 def _headline(outcome: JobOutcome) -> str:
@@ -97,9 +93,9 @@ def _headline(outcome: JobOutcome) -> str:
     return f"AUSE {json.dumps({k: round(v, 3) for k, v in outcome.uncertainty.ause.items()})}"
 
 
-def save_artifacts(output_dir: Path, job: dict, outcome: JobOutcome) -> None:
+def save_artifacts(output_dir: Path, job: Job, outcome: JobOutcome) -> None:
     """Artifacts also go to <output_dir>/jobs/<hash>/artifacts (what reports read offline)."""
-    job_folder = SweepFolder(output_dir).job(job["config_hash"])
+    job_folder = SweepFolder(output_dir).job(job.config_hash)
     folder = job_folder.artifacts
     for name, data in outcome.artifacts.items():
         path = folder / name
@@ -116,7 +112,7 @@ def every_quarter(split: str, done: int, total: int) -> None:
         LOG.info(f"  {split}: {done}/{total} views")
 
 
-def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
+def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
     """Generate the embedded scene if needed, then read each (scene, resolution) once.
     Returns the scenes and one error per scene that cannot be read (naming the dataset key)."""
     scenes, seen, errors = {}, set(), []
@@ -125,9 +121,9 @@ def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
         if key in seen:
             continue
         seen.add(key)
-        path = Path(job["scene_path"]).resolve()
-        if job.get("generate") and not (path / "transforms_test.json").exists():
-            options = job["generate"]
+        path = Path(job.scene_path).resolve()
+        if job.generate and not (path / "transforms_test.json").exists():
+            options = job.generate
             LOG.info(f"generating the default scene into {path} ...")
             generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200),
@@ -135,17 +131,17 @@ def prepare_scenes(jobs: list[dict]) -> tuple[dict[str, Scene], list[str]]:
         try:
             scene = load_scene(path, width=episode_config(job).fit.image_width)
         except Exception as err:
-            errors.append(f"dataset.{job['dataset']} scene {job['scene']!r}: {err}")
+            errors.append(f"dataset.{job.dataset} scene {job.scene!r}: {err}")
             continue
-        if scene.format != job["format"]:
-            errors.append(f"dataset.{job['dataset']} scene {job['scene']!r}: {path} is a {scene.format} "
-                          f"scene but dataset.{job['dataset']}.format is {job['format']!r}")
+        if scene.format != job.format:
+            errors.append(f"dataset.{job.dataset} scene {job.scene!r}: {path} is a {scene.format} "
+                          f"scene but dataset.{job.dataset}.format is {job.format!r}")
             continue
         scenes[key] = scene
     return scenes, errors
 
 
-def protocol_errors(jobs: list[dict], scenes: dict[str, Scene], decode: bool = True) -> list[str]:
+def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = True) -> list[str]:
     """One error per (scene, protocol) that does not fit the scene (budget, initial views, an
     empty sector ...), found by building the protocol's views before any job starts; with
     ``decode``, one per image those views use that cannot be decoded (a zero-byte file would
@@ -153,17 +149,17 @@ def protocol_errors(jobs: list[dict], scenes: dict[str, Scene], decode: bool = T
     errors, checked = [], set()
     used: dict[tuple[str, str], set[int]] = {}
     for job in jobs:
-        if job["kind"] != "episode" or scene_key(job) not in scenes:
+        if job.kind != "episode" or scene_key(job) not in scenes:
             continue
-        key = (scene_key(job), json.dumps(job["protocol"], sort_keys=True))
+        key = (scene_key(job), json.dumps(job.protocol, sort_keys=True))
         if key in checked:
             continue
         checked.add(key)
         try:
             views = build_protocol(scenes[scene_key(job)], episode_config(job).protocol)
         except ValueError as err:
-            where = f" ({job['setting']})" if job.get("setting") else ""
-            errors.append(f"protocol on dataset.{job['dataset']} scene {job['scene']!r}{where}: {err}")
+            where = f" ({job.setting})" if job.setting else ""
+            errors.append(f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}")
             continue
         used.setdefault((scene_key(job), views.pool_split), set()).update(
             views.initial_ids + views.pool_ids + views.probe_ids)
@@ -174,10 +170,10 @@ def protocol_errors(jobs: list[dict], scenes: dict[str, Scene], decode: bool = T
     return errors
 
 
-def init_errors(jobs: list[dict]) -> list[str]:
+def init_errors(jobs: list[Job]) -> list[str]:
     """splat.init=ply:PATH must name a readable 3DGS PLY."""
     errors = []
-    for path in sorted({j["splat"]["init"][len("ply:"):] for j in jobs if j["splat"].get("init")}):
+    for path in sorted({j.splat["init"][len("ply:"):] for j in jobs if j.splat.get("init")}):
         try:
             ply.load(path)
         except (OSError, ValueError) as err:
@@ -185,7 +181,7 @@ def init_errors(jobs: list[dict]) -> list[str]:
     return errors
 
 
-def validate_sweep(jobs: list[dict], decode_images: bool = True) -> dict[str, Scene]:
+def validate_sweep(jobs: list[Job], decode_images: bool = True) -> dict[str, Scene]:
     """Read every scene, build every protocol and (``decode_images``) decode every image the
     protocols use, before Ray or MLflow start; all problems are reported at once as one
     ConfigError (one line each)."""
@@ -206,10 +202,10 @@ def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: P
                  f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).")
 
 
-def execution_order(jobs: list[dict]) -> list[dict]:
+def execution_order(jobs: list[Job]) -> list[Job]:
     """Seed by seed (then the config's order): a sweep stopped early has every method of the
     first seeds, which is what paired comparisons need, rather than some methods on all seeds."""
-    return sorted(jobs, key=lambda j: (j["seed"], j["index"]))
+    return sorted(jobs, key=lambda j: (j.seed, j.index))
 
 
 def run_sweep(cfg: DictConfig) -> SweepSummary:
@@ -228,7 +224,7 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
         lock.release()
 
 
-def _locked_sweep(cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float, lock) -> SweepSummary:
+def _locked_sweep(cfg: DictConfig, jobs: list[Job], output_dir: Path, start: float, lock) -> SweepSummary:
     if lock.stale is not None:
         LOG.info(f"[{cfg.name}] note: took over a stale lock of a sweep that no longer runs "
                  f"(pid {lock.stale.get('pid')}, since {lock.stale.get('since')})")
@@ -243,7 +239,7 @@ class SweepRun:
     hears each finished job (``record``) and round (``track_round``) under ``critical()`` so a stop
     signal waits for the bookkeeping, and ends with a summary (``interrupted`` on a stop signal)."""
 
-    def __init__(self, cfg: DictConfig, jobs: list[dict], output_dir: Path, start: float):
+    def __init__(self, cfg: DictConfig, jobs: list[Job], output_dir: Path, start: float):
         self.name, self.jobs, self.output_dir, self.start = str(cfg.name), jobs, output_dir, start
         self.cfg = cfg
         self.resolved = OmegaConf.to_container(cfg, resolve=True)
@@ -271,7 +267,7 @@ class SweepRun:
         skip list and the execution order; the scenes the jobs read."""
         self.folder.config_file.write_text(json.dumps(self.resolved, indent=1, default=str))
         recorded = self.records.finished_hashes()
-        scenes = validate_sweep([j for j in self.jobs if j["config_hash"] not in recorded],
+        scenes = validate_sweep([j for j in self.jobs if j.config_hash not in recorded],
                                 bool(self.cfg.get("validate_images", True)))
         self.tracker = make_tracker(self.resolved["tracking"], self.output_dir, self.name)
         if stale_driver:  # the last driver here was killed: its open runs will never be closed
@@ -280,42 +276,42 @@ class SweepRun:
                 LOG.info(f"[{self.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
                          f"marked KILLED")
         done = recorded | self.tracker.finished_hashes()
-        self.todo = execution_order([j for j in self.jobs if j["config_hash"] not in done])
+        self.todo = execution_order([j for j in self.jobs if j.config_hash not in done])
         LOG.info(f"[{self.name}] {len(self.jobs)} jobs: {len(self.jobs) - len(self.todo)} already finished "
                  f"(skipped), {len(self.todo)} to run; output in {self.output_dir}")
-        warn_stale(self.name, self.records, {j["config_hash"] for j in self.jobs} & done, self.output_dir)
-        self.folder.jobs_file.write_text(json.dumps(self.jobs, indent=1))
+        warn_stale(self.name, self.records, {j.config_hash for j in self.jobs} & done, self.output_dir)
+        self.folder.write_jobs(self.jobs)
         self.executor = make_executor(self.resolved["executor"])
         return scenes
 
-    def on_done(self, job: dict, outcome: JobOutcome) -> None:
+    def on_done(self, job: Job, outcome: JobOutcome) -> None:
         with critical():  # a stop signal waits until the job is recorded and tracked
             self.record(job, outcome)
 
-    def record(self, job: dict, outcome: JobOutcome) -> None:
+    def record(self, job: Job, outcome: JobOutcome) -> None:
         self.failed += not outcome.finished
         try:
             run_id = self.tracker.log_job(job, outcome)
         except Exception as err:  # tracking trouble must not lose the job's records
-            LOG.warning(f"[{self.name}] warning: tracking failed for {job['config_hash']}: "
+            LOG.warning(f"[{self.name}] warning: tracking failed for {job.config_hash}: "
                         f"{str(err).splitlines()[0][:300]}")
             run_id = None
-            self.untracked.append(job["config_hash"])
+            self.untracked.append(job.config_hash)
         save_artifacts(self.output_dir, job, outcome)
         self.records.add(job_rows(job, outcome, run_id))
         self.progress.slots = getattr(self.executor, "slots", 1)
         self.progress.update(job, outcome)
 
-    def on_round(self, job: dict, message: RoundMessage) -> None:
+    def on_round(self, job: Job, message: RoundMessage) -> None:
         with critical():
             self.track_round(job, message)
 
-    def track_round(self, job: dict, message: RoundMessage) -> None:
+    def track_round(self, job: Job, message: RoundMessage) -> None:
         self.progress.round(job, message)
         try:
             self.tracker.log_round(job, message)
         except Exception as err:  # tracking trouble must not stop the sweep
-            LOG.warning(f"[{self.name}] warning: tracking a round failed for {job['config_hash']}: {err}")
+            LOG.warning(f"[{self.name}] warning: tracking a round failed for {job.config_hash}: {err}")
 
     def summary(self, finished: int, **extra) -> SweepSummary:
         return SweepSummary(self.name, str(self.output_dir), len(self.jobs), len(self.jobs) - len(self.todo),
@@ -324,7 +320,7 @@ class SweepRun:
 
     def interrupted(self, stop: SweepInterrupted) -> None:
         ignore_stop_signals()  # a second Ctrl-C must not cut the bookkeeping short
-        interrupted = [j["config_hash"] for j in getattr(self.executor, "running", [])]
+        interrupted = [j.config_hash for j in getattr(self.executor, "running", [])]
         finished = self.progress.done - self.failed
         summary = self.summary(finished, interrupted=interrupted, stopped_by=str(stop))
         self.tracker.interrupt(asdict(summary))
@@ -353,7 +349,7 @@ def sync_tracking(cfg: DictConfig) -> dict:
     """Replay into MLflow every finished job of the records that the tracking store does not have
     as FINISHED (a tracking server that was down), from records.parquet and jobs/<hash>/artifacts.
     Runs no job. Returns counts."""
-    jobs = {j["config_hash"]: j for j in expand_jobs(cfg)}
+    jobs = {j.config_hash: j for j in expand_jobs(cfg)}
     output_dir = Path(str(cfg.output_dir))
     records = RecordsFile(output_dir)
     finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None

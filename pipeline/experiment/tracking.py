@@ -19,6 +19,7 @@ from pathlib import Path
 from pipeline.active.results import RoundRecord
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
+from pipeline.experiment.spec import Job
 
 TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version")
 
@@ -34,8 +35,8 @@ def flatten(data: dict, prefix: str = "") -> dict[str, str]:
     return out
 
 
-def job_params(job: dict) -> dict[str, str]:
-    return flatten({k: v for k, v in job.items()
+def job_params(job: Job) -> dict[str, str]:
+    return flatten({k: v for k, v in job.to_dict().items()
                     if k not in ("execution", "config_hash", "sweep", "code_version")})
 
 
@@ -61,10 +62,10 @@ class NoTracker:
     def start(self, sweep_config: dict, jobs: int) -> None:
         pass
 
-    def log_round(self, job: dict, message: RoundMessage) -> None:
+    def log_round(self, job: Job, message: RoundMessage) -> None:
         pass
 
-    def log_job(self, job: dict, outcome: JobOutcome) -> str | None:
+    def log_job(self, job: Job, outcome: JobOutcome) -> str | None:
         return None
 
     def end(self, summary: dict) -> None:
@@ -169,21 +170,21 @@ class MlflowTracker:
         for i in range(0, len(items), 1000):
             self.client.log_batch(run_id, metrics=items[i:i + 1000])
 
-    def _child_run(self, job: dict) -> str:
+    def _child_run(self, job: Job) -> str:
         """A new child run for ``job``, with its tags and params."""
-        tags = {k: str(job.get(k)) for k in TAGS}
-        tags.update({"protocol": job["protocol"]["kind"], "mlflow.parentRunId": self.parent or "",
+        tags = {k: str(getattr(job, k)) for k in TAGS}
+        tags.update({"protocol": job.protocol["kind"], "mlflow.parentRunId": self.parent or "",
                      "output_dir": self.output_dir})
-        run = self.client.create_run(self.experiment_id, run_name=f"{job['method']} {job['scene']} s{job['seed']}",
+        run = self.client.create_run(self.experiment_id, run_name=f"{job.method} {job.scene} s{job.seed}",
                                      tags=tags)
         self._log_params(run.info.run_id, job_params(job))
         return run.info.run_id
 
-    def log_round(self, job: dict, message: RoundMessage) -> None:
+    def log_round(self, job: Job, message: RoundMessage) -> None:
         """A round of a running job: its metrics at step = views, in the job's (open) child run."""
-        if job["config_hash"] not in self.live:
-            self.live[job["config_hash"]] = (self._child_run(job), set())
-        run_id, logged = self.live[job["config_hash"]]
+        if job.config_hash not in self.live:
+            self.live[job.config_hash] = (self._child_run(job), set())
+        run_id, logged = self.live[job.config_hash]
         self._log_metrics(run_id, round_metrics(message.record))
         logged.add(message.record.num_views)
         for key, png in message.images.items():  # MLflow's image series per step
@@ -192,17 +193,17 @@ class MlflowTracker:
             from PIL import Image
             self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=message.record.num_views)
 
-    def log_job(self, job: dict, outcome: JobOutcome) -> str:
+    def log_job(self, job: Job, outcome: JobOutcome) -> str:
         """Complete the job's child run (the live one, else a new one) with its final state."""
-        run_id, logged = self.live.pop(job["config_hash"], None) or (self._child_run(job), set())
+        run_id, logged = self.live.pop(job.config_hash, None) or (self._child_run(job), set())
         tags = {"attempts": str(outcome.attempts)}
         final = outcome.final
         if final is not None:
             tags["degraded"] = str(bool(final.degraded)).lower()  # > 3 dB below its last round (see records)
             tags["lpips_status"] = str(final.lpips_status)[:5000]  # why LPIPS is (un)available
             tags["metrics_version"] = str(final.metrics_version)  # what final_ssim means (active.results)
-        if job.get("index") is not None:  # the config's job order, which the report keeps
-            tags["job_index"] = str(job["index"])
+        if job.index is not None:  # the config's job order, which the report keeps
+            tags["job_index"] = str(job.index)
         for key, value in tags.items():
             self.client.set_tag(run_id, key, value)
         if outcome.finished:
@@ -212,10 +213,10 @@ class MlflowTracker:
         return run_id
 
     @staticmethod
-    def _metrics(job: dict, outcome: JobOutcome,
+    def _metrics(job: Job, outcome: JobOutcome,
                  logged: set[int] = frozenset()) -> list[tuple[str, float, int]]:
         """Final metrics, and the round metrics of steps not already logged live."""
-        if job["kind"] == "uncertainty":
+        if job.kind == "uncertainty":
             return [(f"ause_{name}", v, 0) for name, v in outcome.uncertainty.ause.items()]
         episode = outcome.episode
         out = [m for r in episode.rounds if r.num_views not in logged for m in round_metrics(r)]
@@ -226,12 +227,12 @@ class MlflowTracker:
                 ("final_lpips", final.lpips, 0)]
         return out
 
-    def _log_artifacts(self, run_id: str, job: dict, outcome: JobOutcome) -> None:
+    def _log_artifacts(self, run_id: str, job: Job, outcome: JobOutcome) -> None:
         import json
 
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
-            (folder / "config.json").write_text(json.dumps({k: v for k, v in job.items()}, indent=1))
+            (folder / "config.json").write_text(json.dumps(job.to_dict(), indent=1))
             if outcome.result is not None:
                 (folder / "result.json").write_text(json.dumps(outcome.result, default=str))
             for name, data in outcome.artifacts.items():

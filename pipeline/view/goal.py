@@ -45,7 +45,7 @@ def goal_members(run: EpisodeRun, manifold: dict) -> list[int]:
 
 
 def gopre_options(run: EpisodeRun) -> dict:
-    return dict(run.job.get("options") or {}) if run.job["strategy"] == "gopre" else {}
+    return dict(run.job.options or {}) if run.job.strategy == "gopre" else {}
 
 
 def score_goal(run: EpisodeRun, state: RoundState, manifold: dict, probes: int, seed: int = 0) -> GoalScores:

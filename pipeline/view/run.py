@@ -23,6 +23,7 @@ from pipeline.experiment.build import episode_config
 from pipeline.experiment.export import from_checkpoint
 from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.experiment.scene_lookup import scene_of
+from pipeline.experiment.spec import Job
 from pipeline.splat import Gaussians, ply
 
 
@@ -44,7 +45,7 @@ class RoundState:
 @dataclass
 class EpisodeRun:
     folder: Path
-    job: dict
+    job: Job
     cfg: EpisodeConfig
     scene: Scene
     views: ProtocolViews
@@ -66,7 +67,7 @@ class EpisodeRun:
     @property
     def title(self) -> str:
         j = self.job
-        return f"{j['method']} on {j['scene']} (seed {j['seed']}, {j['protocol']['kind']})"
+        return f"{j.method} on {j.scene} (seed {j.seed}, {j.protocol['kind']})"
 
     def model(self, index: int) -> tuple[Gaussians, bool]:
         """The model that made round ``index``'s pick, or the final one when it was not kept."""
@@ -89,19 +90,19 @@ def sweep_listing(folder: Path) -> str:
     """What to open in a sweep folder: one line per episode job (method / scene / seed / setting
     / config hash) and the command for one of them."""
     sweep = SweepFolder(folder)
-    jobs = [j for j in json.loads(sweep.jobs_file.read_text()) if j.get("kind", "episode") == "episode"]
+    jobs = [j for j in sweep.read_jobs() if j.kind == "episode"]
     lines = [f"{folder} is a sweep folder; open one of its {len(jobs)} episode jobs:"]
     for j in jobs:
-        setting = f", {j['setting']}" if j.get("setting") else ""
-        path = sweep.job(j["config_hash"]).path
+        setting = f", {j.setting}" if j.setting else ""
+        path = sweep.job(j.config_hash).path
         done = "" if path.is_dir() else "  (not started)"
-        lines.append(f"  {j['method']} / {j['scene']} / seed {j['seed']}{setting}: {path}{done}")
+        lines.append(f"  {j.method} / {j.scene} / seed {j.seed}{setting}: {path}{done}")
     if jobs:
-        lines.append(f"e.g. pipeline-view {sweep.job(jobs[0]['config_hash']).path}")
+        lines.append(f"e.g. pipeline-view {sweep.job(jobs[0].config_hash).path}")
     return "\n".join(lines)
 
 
-def job_entry(folder: Path) -> dict:
+def job_entry(folder: Path) -> Job:
     """The sweep's description of the job in ``folder`` (its ``jobs.json``, matched by hash)."""
     if SweepFolder(folder).jobs_file.exists():
         raise ValueError(sweep_listing(folder))
@@ -109,10 +110,10 @@ def job_entry(folder: Path) -> dict:
     if not listing.exists():
         raise ValueError(f"{folder}: no {listing} beside it (pass a job folder "
                          "outputs/<sweep>/jobs/<config hash>)")
-    for job in json.loads(listing.read_text()):
-        if job.get("config_hash") == folder.name:
-            if job.get("kind", "episode") != "episode":
-                raise ValueError(f"{folder}: a {job['kind']!r} job, not an episode")
+    for job in SweepFolder(listing.parent).read_jobs():
+        if job.config_hash == folder.name:
+            if job.kind != "episode":
+                raise ValueError(f"{folder}: a {job.kind!r} job, not an episode")
             return job
     raise ValueError(f"{folder}: no job with config hash {folder.name!r} in {listing}")
 

@@ -1,0 +1,75 @@
+"""One job of a sweep, typed: what it computes (hashed), where and how it runs (not hashed).
+
+``expand_jobs`` builds each job's plain form (the dict the config hash and ``jobs.json`` have
+always been made of, so finished sweeps still resume) and returns ``Job`` records; across Ray a job
+travels as ``to_dict()`` and comes back with ``from_dict``. ``protocol``, ``splat``, ``options``,
+``generate`` and ``uncertainty`` stay mappings: they are the config's sections, turned into the
+core's dataclasses by ``pipeline.experiment.build`` (``episode_config``, ``uncertainty_config``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, asdict, dataclass, field, fields
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How and where a job runs; none of it is in the hash."""
+
+    threads: int
+    device: str
+    retries: int
+    round_images: int
+    round_models: bool
+    job_dir: str
+
+
+@dataclass
+class Job:
+    sweep: str
+    results_revision: str
+    kind: str                        # episode | uncertainty
+    dataset: str                     # the dataset key in the config
+    format: str                      # blender | colmap
+    scene: str
+    scene_path: str
+    generate: dict | None            # the generated scene's options (None: a dataset on disk)
+    method: str                      # the method key (a config name: gopre, gopre_tau0, ...)
+    strategy: str                    # the acquisition strategy it runs
+    options: dict                    # the strategy's options
+    protocol: dict                   # the protocol section (kind, budget, probes, ...)
+    splat: dict                      # the splat section (preset and its overrides)
+    seed: int
+    renders: int
+    uncertainty: dict | None         # the uncertainty section of an uncertainty job
+    axes: dict = field(default_factory=dict)  # this job's sweep-axis values
+    setting: str = ""                # the axes as "key=value, ..."
+    config_hash: str = ""
+    execution: Execution | None = None
+    index: int | None = None         # the config's order (tables keep it)
+    code_version: str | None = None
+
+    def to_dict(self) -> dict:
+        """The plain form, key for key as ``jobs.json`` has always held it."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["execution"] = asdict(self.execution) if self.execution is not None else None
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Job":
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"Job.from_dict: unknown keys {sorted(unknown)}")
+        missing = sorted(f.name for f in fields(cls) if f.name not in data
+                         and f.default is MISSING and f.default_factory is MISSING)
+        if missing:
+            raise ValueError(f"Job.from_dict: missing keys {missing}")
+        execution = data.get("execution")
+        return cls(**{**data, "execution": Execution(**execution) if execution else None})
+
+    @property
+    def label(self) -> str:
+        """'method on scene (seed s, setting)', as the driver's lines and the reports name a job."""
+        setting = f", {self.setting}" if self.setting else ""
+        return f"{self.method} on {self.scene} (seed {self.seed}{setting})"
