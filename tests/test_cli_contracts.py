@@ -54,12 +54,12 @@ def test_config_hash_golden_value():
 
 
 def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():
-    """+splat.fit.<group>.<name>=value reaches the episode's fit recipe (applied after the preset
+    """splat.fit.<group>.<name>=value reaches the episode's fit recipe (applied after the preset
     and splat.iterations / image_width / max_gaussians); a preset without it keeps its hash."""
     from pipeline.experiment.build import ConfigError, episode_config
     base = first_job()
-    job = first_job("+splat.fit.lr.means_init=1e-4", "+splat.fit.densify.grad_threshold=3e-4",
-                    "+splat.fit.ssim_weight=0.3", "splat.image_width=40")
+    job = first_job("splat.fit.lr.means_init=1e-4", "splat.fit.densify.grad_threshold=3e-4",
+                    "splat.fit.ssim_weight=0.3", "splat.image_width=40")
     fit, before = episode_config(job).fit, episode_config(base).fit
     assert (fit.lr.means_init, fit.densify.grad_threshold, fit.ssim_weight, fit.image_width) == (1e-4, 3e-4, 0.3, 40)
     assert fit.lr.sh0 == before.lr.sh0 and fit.densify.interval == before.densify.interval
@@ -67,7 +67,7 @@ def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():
     for override, match in (("+splat.fit.lr.mean_init=1e-4", r"splat\.fit\.lr\.mean_init: unknown"),
                             ("+splat.fit.densify.max_gaussians=abc", r"splat\.fit\.densify\.max_gaussians: expected int"),
                             ("+splat.fit.iterations=50", r"splat\.fit\.iterations: set the recipe's length"),
-                            ("+splat.fit.lr=3", r"splat\.fit\.lr: a group")):
+                            ("splat.fit.lr=3", r"splat\.fit\.lr: a group")):
         with pytest.raises(ConfigError, match=match):
             first_job(override)
 
@@ -77,7 +77,7 @@ def test_plan_lists_the_hyperparameters_the_jobs_run_with(tmp_path):
     config's (computed here from the preset, not copied), an override shows up."""
     from pipeline.active.config import episode_preset
     out = subprocess.run([str(BIN / "gopre-run"), "experiment=debug", "executor=local", "tracking=none",
-                          "plan=true", f"output_dir={tmp_path / 'p'}", "+splat.fit.lr.quats=0.002"],
+                          "plan=true", f"output_dir={tmp_path / 'p'}", "splat.fit.lr.quats=0.002"],
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     listed = dict(line.strip().split(" = ") for line in out.stdout.splitlines() if line.startswith("  fit."))

@@ -5,14 +5,21 @@ import math
 import pytest
 import torch
 
-from pipeline.fit import Trainer, evaluate_psnr, tiny_preset
-from pipeline.fit.config import DensifyConfig
+from pipeline.fit import Trainer, evaluate_psnr
+from pipeline.fit.config import DensifyConfig, FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, remap, reset_opacity
 from pipeline.fit.init import knn_rms_distance, random_in_box
 from pipeline.fit.losses import photometric_loss, psnr, ssim, ssim_map
 from pipeline.splat import render
 from pipeline.splat.scenes import random_scene, sphere_cameras
 from tests.conftest import shared_scene
+
+
+def tiny_preset() -> FitConfig:
+    """A few hundred iterations at 48 px with SH degree 1: the trainer's test recipe."""
+    return FitConfig(iterations=300, sh_degree=1, sh_degree_interval=100, image_width=48, init_points=1000,
+                     densify=DensifyConfig(start=60, stop=200, interval=40, prune_large_after=10_000,
+                                           opacity_reset_interval=10_000, max_gaussians=5000))
 
 
 def test_ssim_properties_and_skimage_agreement():
@@ -144,8 +151,8 @@ def test_short_fit_on_lego_clears_psnr_bar():
 
 
 def test_scaled_schedules_and_no_opacity_reset_at_the_end():
-    from pipeline.fit import cpu_preset
-    cfg = cpu_preset().scaled_to(1000)
+    from pipeline.active.config import cpu_episode
+    cfg = cpu_episode().fit.scaled_to(1000)
     assert cfg.iterations == 1000 and cfg.densify.stop == 500 and cfg.densify.opacity_reset_interval == 100
     g = random_scene(50, seed=0)
     cams = sphere_cameras(2, 16, 16)
@@ -413,10 +420,12 @@ def test_presets_switch_big_gaussian_pruning_on_at_a_tenth_of_the_run_as_3dgs():
     recipe rescaled to a real scene's 5,100 iterations, keeps that tenth (it was a third at CPU
     scale, tied to the opacity-reset interval, and pruning switched on mid-episode)."""
     from pipeline.active.config import cpu_episode
-    from pipeline.fit.config import cpu_preset, paper_preset
+    from pipeline.active.config import tiny_episode
+    from pipeline.fit.config import paper_preset
     paper = paper_preset()
     assert paper.densify.prune_large_after == 3000 and paper.densify.max_world_scale == 0.1
-    for fit in (paper, cpu_preset(), cpu_episode().fit, cpu_episode().fit.scaled_to(5100)):
+    assert tiny_episode().fit.densify.prune_large_after > tiny_episode().fit.iterations  # off in smoke runs
+    for fit in (paper, cpu_episode().fit, cpu_episode().fit.scaled_to(5100)):
         assert fit.densify.prune_large_after / fit.iterations == pytest.approx(0.1, abs=0.002)
 
 

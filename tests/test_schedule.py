@@ -3,8 +3,10 @@ model that fell below its last round."""
 
 import glob
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pipeline.active import episode_schedule, run_episode, tiny_episode
@@ -15,6 +17,7 @@ from pipeline.data.protocols import ProtocolConfig
 from pipeline.data.synthetic import generate
 from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.build import episode_config
+from pipeline.experiment.splat_section import job_form
 
 SPLAT_PRESETS = sorted(Path(p).stem for p in glob.glob(str(CONF_DIR / "splat" / "*.yaml")))
 # the protocols' default (initial views, budget): Blender and sparse, real scenes (global, goal)
@@ -51,13 +54,15 @@ def test_reload_trains_a_whole_fit_at_the_end():
     assert s.round_views == tuple(range(2, 10)) and s.round_iterations == tuple(300 * n for n in range(2, 10))
 
 
-def job_for(preset: str, initial: int, budget: int, policy: str | None) -> dict:
-    splat = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "splat" / f"{preset}.yaml"))
+def job_for(preset: str, initial: int, budget: int, policy: str | None) -> SimpleNamespace:
+    """What episode_config reads of a job (a preset's splat section as composed, in job form)."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        splat = OmegaConf.to_container(compose("config", [f"splat={preset}"]).splat, resolve=True)
     if policy is not None:
         splat["post_selection"] = policy
     protocol = {"kind": "global", "initial_views": initial, "budget": budget}
-    return {"splat": splat, "protocol": protocol, "strategy": "random", "options": {}, "seed": 0,
-            "method": "random", "scene": "s"}
+    return SimpleNamespace(splat=job_form(splat), protocol=protocol, strategy="random", options={}, seed=0,
+                           method="random", scene="s")
 
 
 @pytest.mark.parametrize("policy", [None, "reload", "continue"])

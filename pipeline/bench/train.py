@@ -17,7 +17,7 @@ import torch
 
 from pipeline.bench.measure import (BACKEND_VARIANTS, backend_variant, machine_load, peak_rss_mb,
                                     reset_peak_rss)
-from pipeline.fit.config import cpu_preset
+from pipeline.active.config import cpu_episode
 from pipeline.fit.trainer import Trainer
 from pipeline.splat import RenderSettings, render
 from pipeline.splat.scenes import orbit_cameras, random_scene
@@ -34,7 +34,7 @@ def training_views(size: int, n: int, views: int = 8):
 def iterations_per_second(backend: str, size: int, n: int, steps: int, repeats: int) -> float:
     """Median over ``repeats`` blocks of ``steps`` iterations (after 2 warm-up iterations)."""
     cams, images = training_views(size, n)
-    config = cpu_preset().with_changes(image_width=size)
+    config = cpu_episode().fit.with_changes(image_width=size)  # the episodes' recipe
     trainer = Trainer(random_scene(n, seed=0, sh_degree=config.sh_degree), cams, images, config,
                       render_settings=RenderSettings(backend=backend))
     if steps * repeats + 2 >= config.densify.start:
@@ -56,7 +56,7 @@ def main(argv=None) -> None:
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--gaussians", type=int, default=10000)
     parser.add_argument("--steps", type=int, default=20, help="iterations per timed block")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=4)  # 2 + 20 x 4 < densify.start (100)
     parser.add_argument("--backends", nargs="+", default=["tiles", "compiled-unfused", "compiled"],
                         choices=BACKEND_VARIANTS,
                         help="compiled-unfused: the compiled ops without the fused training "

@@ -25,15 +25,16 @@ from pipeline.data.protocols import ProtocolConfig
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
+from pipeline.experiment.splat_section import job_form
 
 JOB_KINDS = ("episode", "uncertainty")
 METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: overrides for this method
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
               "init", "fit"}
-# init (+splat.init=ply:PATH) and fit (+splat.fit.lr.means_init=1e-4: any hyperparameter of the
-# episode's fit recipe, applied last) are optional and absent from the presets, so the presets'
-# hashes do not change; `gopre-run ... plan=true` lists every hyperparameter a job runs with.
+# init (+splat.init=ply:PATH) is optional; fit (conf/splat/<preset>.yaml lists the recipe, e.g.
+# splat.fit.lr.means_init=1e-4) reaches a job as what differs from the preset (splat_section.job_form),
+# so the presets' hashes do not change; `gopre-run ... plan=true` lists every hyperparameter a job runs with.
 # Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
 # never resumes or reuses results of the code before it. "fidelity-1": issue 26 (scene extent,
 # tau -> 0, ActiveNeRF port, prune switch, kNN scales, probes incl. the initial views).
@@ -67,11 +68,16 @@ def _container(cfg: DictConfig, key: str):
 
 def _set_dotted(job: dict, dotted: str, value) -> None:
     node, parts = job, dotted.split(".")
+    if parts[:2] == ["splat", "fit"]:  # a job carries only the changed fit values: make room
+        room = job["splat"]
+        for part in parts[1:-1]:
+            room = room.setdefault(part, {})
     for part in parts[:-1]:
         if not isinstance(node.get(part), dict):
             raise ConfigError(f"sweep: {dotted!r} is not a job key (no {part!r})")
         node = node[part]
-    if parts[-1] not in node and parts[:-1] != ["options"]:  # a strategy may take an option not set yet
+    # a strategy may take an option not set yet; a fit value is checked by episode_config
+    if parts[-1] not in node and parts[:-1] != ["options"] and parts[:2] != ["splat", "fit"]:
         raise ConfigError(f"sweep: {dotted!r} is not a job key; job keys: protocol.*, splat.*, options.*, "
                           "renders, uncertainty.*")
     node[parts[-1]] = value
@@ -139,6 +145,10 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
     if job_cfg["kind"] not in JOB_KINDS:
         raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
     check_job_section(job_cfg)
+    try:
+        splat = job_form(splat)
+    except ValueError as err:
+        raise ConfigError(f"splat.{err}") from None
     jobs = []
     output_dir = Path(str(cfg.output_dir))
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"

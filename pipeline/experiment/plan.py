@@ -43,7 +43,7 @@ def estimate(job: Job, durations: pd.DataFrame) -> float | None:
 
 def hyperparameter_text(jobs: list[Job]) -> str:
     """Every hyperparameter the jobs' episodes run with, once per distinct set (the fit recipe
-    after the preset, splat.iterations / image_width / max_gaussians and any +splat.fit.* overrides,
+    after the preset, splat.iterations / image_width / max_gaussians and any splat.fit.* overrides,
     then the episode's own settings), with the jobs (methods) that use it."""
     from pipeline.experiment.build import episode_config  # the jobs' own resolution
 
@@ -59,7 +59,7 @@ def hyperparameter_text(jobs: list[Job]) -> str:
     for text, users in groups.items():
         names = sorted(set(users))
         out += [f"hyperparameters of {', '.join(names[:4])}{' ...' if len(names) > 4 else ''} "
-                f"(override any with +splat.fit.<name>=value, fit.iterations through splat.iterations; an "
+                f"(override any with splat.fit.<name>=value, conf/splat/ lists them; fit.iterations through splat.iterations; an "
                 f"episode whose rounds need more iterations rescales the recipe, pipeline/active/schedule.py):",
                 text]
     return "\n".join(out)

@@ -1,4 +1,7 @@
-"""Every training hyperparameter, with a paper-scale and a CPU-scale preset."""
+"""Every training hyperparameter, with 3DGS's defaults (``paper_preset``).
+
+The CPU and test-scale recipes are the episode presets' (``pipeline.active.config``): one preset
+per name, shown value for value in ``conf/splat/<name>.yaml``."""
 
 from __future__ import annotations
 
@@ -147,41 +150,3 @@ def _flat(data: dict, where: str) -> dict[str, object]:
 def paper_preset() -> FitConfig:
     """3DGS defaults: 30k iterations at full resolution, no Gaussian cap."""
     return FitConfig()
-
-
-def cpu_preset() -> FitConfig:
-    """Scaled for 2 CPU cores: 100 px wide images, 3k iterations, at most 20k Gaussians.
-
-    Schedules keep the paper's proportions: densify over the first half, an opacity reset and
-    the start of big-Gaussian pruning every tenth of the run, SH degree raised every 1/30 of it.
-    (Until the fidelity fixes the reset interval was a third of the run, 1000 of 3000, so the
-    big-Gaussian prune switched on mid-episode and removed a quarter of a real scene's Gaussians at
-    once: the mid-episode collapse of issue 26.)
-    3DGS's world-size prune (max scale > 0.1 x extent) is off: with <= 10-20k Gaussians, 100x fewer
-    than 3DGS, a real scene's background is covered by Gaussians above that size, and the rule
-    removed ~15% of them at once whenever it switched on (bonsai: -3.7 dB in one round, measured;
-    reports/fidelity.md). The screen-size prune (20 px) stays, from a tenth of the run on.
-    """
-    return FitConfig(
-        iterations=3000, sh_degree=3, sh_degree_interval=100, image_width=100, init_points=5000,
-        densify=DensifyConfig(start=150, stop=1500, interval=100, prune_large_after=300,
-                              opacity_reset_interval=300, max_world_scale=None, max_gaussians=20_000),
-    )
-
-
-def tiny_preset() -> FitConfig:
-    """For tests and smoke runs: a few hundred iterations at 48 px."""
-    return FitConfig(
-        iterations=300, sh_degree=1, sh_degree_interval=100, image_width=48, init_points=1000,
-        densify=DensifyConfig(start=60, stop=200, interval=40, prune_large_after=10_000,
-                              opacity_reset_interval=10_000, max_gaussians=5000),
-    )
-
-
-PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "tiny": tiny_preset}
-
-
-def preset(name: str) -> FitConfig:
-    if name not in PRESETS:
-        raise ValueError(f"unknown fit preset {name!r}; choose one of {sorted(PRESETS)}")
-    return PRESETS[name]()
