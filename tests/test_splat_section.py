@@ -104,3 +104,17 @@ def test_every_splat_yaml_composes_to_a_known_preset():
         section = splat_of(path.stem)
         episode_preset(section["preset"])  # raises on an unknown preset
         job_form(section)
+
+
+def test_the_published_study_keeps_every_hash_it_was_run_under():
+    """reports/science/runs.csv is the study as it ran (108 episodes): each of its jobs, expanded
+    by today's code, has the hash it finished under, so `gopre-run experiment=science` resumes it."""
+    import csv
+
+    from pipeline.cli.run import CONF_DIR as conf
+    published = {(r["method"], r["scene"], int(r["seed"]), r["setting"]): r["config_hash"]
+                 for r in csv.DictReader(open(conf.parent / "reports" / "science" / "runs.csv"))}
+    jobs = {(j.method, j.scene, j.seed, j.setting): j.config_hash
+            for j in expand_jobs(composed(["experiment=science"]))}
+    assert len(published) == 108 and set(published) <= set(jobs)
+    assert {key: jobs[key] for key in published} == published
