@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from pipeline.active.results import RoundRecord
+from pipeline.experiment.console import console
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
@@ -273,8 +274,8 @@ class MlflowTracker:
         try:
             self._log_sweep_figures()
         except Exception as err:  # a figure must not keep the sweep's run open
-            print(f"warning: the sweep's figures were not logged to MLflow: {str(err).splitlines()[0][:300]}",
-                  flush=True)
+            console().warning(f"warning: the sweep's figures were not logged to MLflow: "
+                              f"{str(err).splitlines()[0][:300]}")
         self.client.set_terminated(self.parent, "FAILED" if summary.get("failed") else "FINISHED")
 
     def _log_sweep_figures(self) -> None:
