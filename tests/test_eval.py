@@ -54,6 +54,18 @@ def test_ssim_is_3dgs_formula_over_the_whole_zero_padded_image():
     assert ssim_value(pred + 3.0, gt) == pytest.approx(ssim_value(torch.ones_like(pred), gt))
 
 
+def test_the_evaluation_ssim_is_the_training_losss_ssim_in_float64():
+    """ssim_value (two 1-D window passes, NumPy) against the training loss's ssim_map (the 2-D
+    window by conv2d, torch) in float64: a 64 px view, one smaller than the window, a flat one."""
+    from pipeline.fit.losses import ssim_map
+    for h, w in ((42, 64), (7, 9), (11, 11)):
+        pred, gt = pair(2, max(h, w))
+        pred, gt = pred[:h, :w].contiguous(), gt[:h, :w].contiguous()
+        for a in (pred, torch.full_like(pred, 0.5)):
+            expected = float(ssim_map(a.clamp(0, 1).double(), gt.double()).mean())
+            assert ssim_value(a, gt) == pytest.approx(expected, abs=1e-14), (h, w)
+
+
 def test_the_two_ssim_conventions_differ_where_the_border_differs():
     """Errors only in the first rows: scikit-image's valid-interior mean drops the map's 5 border
     rows, where they weigh most, so it scores the pair much higher than 3DGS's full-image mean."""

@@ -5,7 +5,9 @@
   an 11x11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03, local means and (population)
   variances by convolution with zero padding, the SSIM map averaged over every pixel and channel
   (``ssim_value``; the formula is the training loss's, ``pipeline.fit.losses.ssim_map``, here in
-  float64). One difference remains: 3DGS scores renders it saved as 8-bit PNGs; we score the
+  float64 with the window applied as two 1-D passes: the Gaussian window is separable, and
+  float64 ``conv2d`` of the 2-D window took ~40 ms per 64 px view on 2 CPU threads, ~0.7 ms this
+  way; the two agree to 1e-15, tested). One difference remains: 3DGS scores renders it saved as 8-bit PNGs; we score the
   float render clamped to [0, 1] (as for PSNR).
 - SSIM (scikit-image), a second column: ``structural_similarity`` with the same window and
   constants (``SSIM_SETTINGS``), which averages over the valid interior only (it crops
@@ -23,11 +25,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.ndimage import correlate1d
 from skimage.metrics import structural_similarity
 from torch import Tensor
 
 from pipeline.cameras import Cameras
-from pipeline.fit.losses import ssim_map
 from pipeline.splat import Gaussians, RenderSettings, render
 
 SSIM_CONVENTION = ("ssim: 3DGS's (zero-padded windows, mean over all pixels); "
@@ -48,13 +50,29 @@ def psnr_value(pred: Tensor, gt: Tensor) -> float:
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 
+def _gaussian_window_1d(size: int = 11, sigma: float = 1.5) -> np.ndarray:
+    x = np.arange(size, dtype=np.float64) - (size - 1) / 2
+    g = np.exp(-(x * x) / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+WINDOW_1D = _gaussian_window_1d()  # 3DGS's window: 11 taps, sigma 1.5; its 2-D window is the outer product
+
+
 def ssim_value(pred: Tensor, gt: Tensor) -> float:
     """3DGS's SSIM of one view (zero-padded windows, the mean over all pixels and channels), in
     float64: pred, gt [H, W, 3] in [0, 1] (pred is clamped)."""
     _check_pair(pred, gt)
-    a = pred.detach().clamp(0, 1).double().cpu()
-    b = gt.detach().double().cpu()
-    return float(ssim_map(a, b).mean())
+    x = pred.detach().clamp(0, 1).double().cpu().numpy()
+    y = gt.detach().double().cpu().numpy()
+    stats = np.stack([x, y, x * x, y * y, x * y])  # [5, H, W, 3]
+    # the 2-D window as a pass along rows then columns; "constant" mode pads with zeros as conv2d
+    local = correlate1d(correlate1d(stats, WINDOW_1D, axis=1, mode="constant"), WINDOW_1D, axis=2,
+                        mode="constant")
+    mu_x, mu_y, exx, eyy, exy = local
+    sxx, syy, sxy = exx - mu_x ** 2, eyy - mu_y ** 2, exy - mu_x * mu_y
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return float((((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))).mean())
 
 
 def ssim_skimage_value(pred: Tensor, gt: Tensor) -> float:
