@@ -202,3 +202,37 @@ def test_gopre_over_compact_fishers_picks_and_scores_as_the_dense_path(options, 
     for k, v in dense.scores.items():
         assert sparse.scores[k] == pytest.approx(v, rel=1e-9), k
     assert sparse.fisher_views == dense.fisher_views
+
+
+def test_a_probe_that_is_a_candidate_or_a_taken_view_reuses_its_fisher():
+    """The episode names its probes and taken views by pool id; probes among the candidates or the
+    taken views reuse those Fishers. The picks and every score equal the run that recomputes each
+    probe's Fisher, bit for bit, and fewer views are computed. A probe id mapped to the wrong view
+    (by position instead of id) would change the goal Hessian and the scores."""
+    from pipeline.acquisition import SelectionContext, make_strategy
+    from pipeline.splat.scenes import sphere_cameras
+    g = random_scene(600, seed=0)
+    views = sphere_cameras(20, 24, 24, seed=1)  # pool ids 0..19
+    taken_ids, candidate_ids = [17, 3, 11], [i for i in range(20) if i not in (17, 3, 11)]
+    probe_ids = [11, 5, 19, 0, 3]  # two taken views, three candidates
+    outside = sphere_cameras(1, 24, 24, seed=9)
+    results = []
+    for named in (False, True):
+        ctx = SelectionContext(g, views[candidate_ids], candidate_ids, views[taken_ids], torch.ones(3),
+                               torch.Generator().manual_seed(0), views[probe_ids],
+                               settings=RenderSettings(backend="compiled"),
+                               taken_ids=taken_ids if named else None,
+                               probe_ids=probe_ids if named else None)
+        results.append(make_strategy("gopre").select(ctx, 2))
+    recomputed, reused = results
+    assert reused.chosen == recomputed.chosen and reused.scores == recomputed.scores
+    assert recomputed.fisher_views - reused.fisher_views == len(probe_ids)
+    with pytest.raises(ValueError, match="probe_ids has 2 entries for 5 cameras"):
+        SelectionContext(g, views[candidate_ids], candidate_ids, views[taken_ids], torch.ones(3),
+                         torch.Generator().manual_seed(0), views[probe_ids], probe_ids=[1, 2])
+    # a probe outside the pool (no known Fisher under its id) is computed
+    ctx = SelectionContext(g, views[candidate_ids], candidate_ids, views[taken_ids], torch.ones(3),
+                           torch.Generator().manual_seed(0), Cameras.cat([views[[5]], outside]),
+                           settings=RenderSettings(backend="compiled"), taken_ids=taken_ids,
+                           probe_ids=[5, 99])
+    assert make_strategy("gopre").select(ctx, 1).fisher_views == len(candidate_ids) + len(taken_ids) + 1

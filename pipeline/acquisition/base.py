@@ -32,6 +32,10 @@ class SelectionContext:
     probes: Cameras | None = None    # K probe poses from the target manifold (goal strategies)
     taken_images: Tensor | None = None  # [C_taken, H, W, 3] (strategies that use errors)
     settings: RenderSettings = field(default_factory=RenderSettings)
+    # the pool ids of the taken views and of the probes, when they are pool views (the episode's
+    # are): a probe that is a candidate or a taken view reuses that view's Fisher (same model)
+    taken_ids: list[int] | None = None
+    probe_ids: list[int] | None = None
     fisher_seconds: float = field(default=0.0, init=False)  # time spent in Fisher passes
     fisher_views: int = field(default=0, init=False)
 
@@ -41,6 +45,11 @@ class SelectionContext:
                              f"{len(self.candidates)} candidate cameras")
         if len(self.candidate_ids) == 0:
             raise ValueError("candidates: the pool is empty")
+        for name, ids, cams in (("taken_ids", self.taken_ids, self.taken),
+                                ("probe_ids", self.probe_ids, self.probes)):
+            if ids is not None and (cams is None or len(ids) != len(cams)):
+                raise ValueError(f"{name} has {len(ids)} entries for "
+                                 f"{0 if cams is None else len(cams)} cameras")
 
 
 @dataclass
@@ -77,6 +86,17 @@ def sparse_fishers(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) ->
     ctx.fisher_seconds += time.perf_counter() - start
     ctx.fisher_views += len(cameras)
     return out
+
+
+def sparse_fishers_reusing(ctx: SelectionContext, cameras: Cameras, ids: list[int] | None,
+                           known: dict[int, SparseFisher], spec: FisherSpec) -> list[SparseFisher]:
+    """``sparse_fishers`` of ``cameras`` (pool ids ``ids``), taking a view's Fisher from ``known``
+    (pool id -> Fisher of this round's model) instead of recomputing it; order kept."""
+    if ids is None:
+        return sparse_fishers(ctx, cameras, spec)
+    missing = [k for k, i in enumerate(ids) if i not in known]
+    computed = dict(zip(missing, sparse_fishers(ctx, cameras[missing], spec))) if missing else {}
+    return [computed[k] if k in computed else known[i] for k, i in enumerate(ids)]
 
 
 def summed_fisher(views: list[SparseFisher], n: int, width: int) -> Tensor:

@@ -16,7 +16,7 @@ import torch
 
 from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
                                        greedy_pick_sparse, pool_and_train_fishers, sparse_fishers,
-                                       summed_fisher, timed_selection)
+                                       sparse_fishers_reusing, summed_fisher, timed_selection)
 from pipeline.fisher.exact import FisherSpec, fused_fisher_available
 from pipeline.fisher.features import PARAM_GROUPS
 from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score,
@@ -75,15 +75,21 @@ class GoPreStrategy:
 
     def _sparse_run(self, ctx: SelectionContext, count: int):
         """The logdet score (tau > 0) over compact candidate Fishers: the same picks and scores
-        as the dense path without its [M, N, P] block (used when the fused compiled Fisher is)."""
+        as the dense path without its [M, N, P] block (used when the fused compiled Fisher is).
+        A probe that is a candidate or a taken view (the global protocol draws probes from every
+        training view) reuses that view's Fisher: the same model, the same numbers."""
         def run(order):
             cands = sparse_fishers(ctx, ctx.candidates[order], self.spec)
             n = len(ctx.gaussians)
             width = cands[0].rows.shape[1]
-            h = summed_fisher(sparse_fishers(ctx, ctx.taken, self.spec) if len(ctx.taken) else [],
-                              n, width)
+            taken = sparse_fishers(ctx, ctx.taken, self.spec) if len(ctx.taken) else []
+            h = summed_fisher(taken, n, width)
             if self.goal == "probes":
-                goal = summed_fisher(sparse_fishers(ctx, ctx.probes, self.spec), n, width)
+                known = {ctx.candidate_ids[i]: f for i, f in zip(order, cands)}
+                if ctx.taken_ids is not None:
+                    known.update(zip(ctx.taken_ids, taken))
+                probes = sparse_fishers_reusing(ctx, ctx.probes, ctx.probe_ids, known, self.spec)
+                goal = summed_fisher(probes, n, width)
                 goal /= len(ctx.probes)  # M = mean over the K probes
             else:
                 goal = torch.ones(n, width, dtype=torch.float64)

@@ -180,7 +180,7 @@ class Episode:
         ctx = SelectionContext(self.trainer.rendered_gaussians, self.pool.cameras[remaining], remaining,
                                self.pool.cameras[self.taken], self.background, self.generator,
                                self.pool.cameras[rec.probes], self.images(self.pool, self.taken),
-                               self.trainer.settings)
+                               self.trainer.settings, taken_ids=list(self.taken), probe_ids=list(rec.probes))
         cpu = time.process_time()
         sel = self.strategy.select(ctx, count)
         rec.selection_cpu_seconds = round(time.process_time() - cpu, 3)
