@@ -419,3 +419,65 @@ def test_each_browser_tab_has_its_own_goal(tiny_run):
                 browser.close()
     finally:
         server.stop()
+
+
+@pytest.mark.e2e
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on this machine: `make e2e` installs it")
+def test_the_viewers_state_rows_in_a_browser(tiny_run):
+    """Issue 29's viewer rows, driven in Chromium: a round change (the slider, by keyboard) clears
+    the scored goal on the page; a camera shown from the scene (what a frustum click does) moves
+    the dropdown; choosing a camera in 'picked cameras' mode does not add it to the goal, the Add
+    button does; the colour legend is on the page."""
+    playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (dev extra)")
+    from pipeline.cli.view import start
+    from pipeline.view.server import CameraKey
+
+    def until(condition, what: str, seconds: float = 60) -> None:
+        deadline = time.time() + seconds
+        while time.time() < deadline and not condition():
+            time.sleep(0.2)
+        assert condition(), what
+
+    server, v = start(str(tiny_run["gopre"]), port=free_port())
+    try:
+        with playwright_api.sync_playwright() as p:
+            browser, page = browser_page(p)
+            try:
+                page.goto(f"http://127.0.0.1:{server.get_port()}/")
+                page.wait_for_function("document.body.innerText.includes('Score next view')", timeout=60_000)
+                body = page.inner_text("body")
+                for word in ("Colours", "dark teal", "bright cyan", "purple"):
+                    assert word in body, word
+                # a round change clears the goal's result on the page
+                page.get_by_role("button", name="Score next view").click()
+                page.wait_for_function("document.body.innerText.includes('Next best view: pool')", timeout=60_000)
+                assert v.state.index > 0
+                slider = page.get_by_role("slider").first
+                slider.focus()
+                slider.press("Home")
+                page.wait_for_function("document.body.innerText.includes('Round changed to 0')", timeout=60_000)
+                assert v.state.index == 0 and v.goal is None
+                assert "Next best view: pool" not in page.inner_text("body")
+                # a camera shown from the scene moves the dropdown
+                view = v.run.views.pool_ids[-1]
+                v.show_camera(CameraKey("pool", view))
+                choice = page.get_by_label("Camera view", exact=True)
+                until(lambda: choice.input_value() == f"pool {view}", "the dropdown did not follow")
+                # inspecting in 'picked cameras' mode leaves the goal alone; Add adds
+                page.get_by_label("Goal", exact=True).click()
+                page.get_by_role("option", name="picked cameras", exact=True).click()
+                until(lambda: v.goal_kind.value == "picked cameras", "the goal kind did not change")
+                other = v.run.views.pool_ids[0]
+                choice.click()
+                page.get_by_role("option", name=f"pool {other}", exact=True).click()
+                until(lambda: v.shown == CameraKey("pool", other), "the chosen camera was not shown")
+                # viser's text input is not linked to its label: the input in the label's row
+                picked = page.locator("xpath=//label[text()='Picked views']/ancestor::div"
+                                      "[contains(@class, 'mantine-Flex-root')][1]//input")
+                assert v.goal_views.value == "" and picked.input_value() == ""
+                page.get_by_role("button", name="Add the shown camera to the picked views").click()
+                until(lambda: picked.input_value() == str(other), "Add did not add")
+            finally:
+                browser.close()
+    finally:
+        server.stop()
