@@ -29,6 +29,13 @@ def read_image(path: Path, size: tuple[int, int] | None, background: Tensor) -> 
         raise DataError(f"{path}: image file not found") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read image ({err})") from None
+    return image_tensor(img, size, background)
+
+
+def image_tensor(img: Image.Image, size: tuple[int, int] | None, background: Tensor) -> Tensor:
+    """A decoded RGB or RGBA image as the readers return it: resized to ``size`` (width, height;
+    Lanczos, alpha premultiplied by Pillow) and composited over ``background`` [3]: [H, W, 3]
+    float32 in [0, 1]. The capture simulators (``pipeline.world``) process their renders by it."""
     if size is not None and img.size != tuple(size):
         img = img.resize(tuple(size), Image.Resampling.LANCZOS)
     arr = torch.from_numpy(np.asarray(img, dtype=np.float32) / 255.0)

@@ -1,0 +1,183 @@
+"""pipeline/world (issue 28): the pose space, the search and the capture simulators.
+
+Oracles: the manifolds' own azimuth rule (data/manifolds.py) for where a pose's camera sits, the
+pinhole projection of the centre for where it looks, the stored dataset images (as the reader
+reads them) for the generated world, hand-planted optima for the search."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.cameras import Cameras
+from pipeline.data.load import load_scene
+from pipeline.data.manifolds import SectorManifold
+from pipeline.data.synthetic import CAMERA_ANGLE_X, generate
+from pipeline.world import (GeneratedWorld, LookAtShell, SearchBudget, TwinWorld, pose_coordinates,
+                            search_poses, train_twin)
+
+UP = (0.0, 0.0, 1.0)
+K = ((50.0, 0.0, 32.0), (0.0, 50.0, 32.0), (0.0, 0.0, 1.0))
+
+
+def shell(**changes) -> LookAtShell:
+    base = dict(centre=(0.1, -0.2, 0.3), up=UP, azimuth_start_deg=0.0, azimuth_span_deg=360.0,
+                elevation_deg=(5.0, 70.0), radius=(3.0, 5.0), K=K, width=64, height=64, scene_radius=1.5)
+    return LookAtShell(**{**base, **changes})
+
+
+def test_a_poses_camera_sits_at_its_coordinates_and_looks_at_the_centre():
+    space = shell()
+    poses = space.sample(40, torch.Generator().manual_seed(0))
+    cams = space.cameras(poses)
+    az, el, r = pose_coordinates(cams, torch.tensor(space.centre), torch.tensor(UP))
+    turn = (az - poses[:, 0] + 180) % 360 - 180
+    assert turn.abs().max() < 1e-3 and (el - poses[:, 1]).abs().max() < 1e-3
+    assert (r - poses[:, 2]).abs().max() < 1e-4
+    centre = torch.tensor([*space.centre, 1.0], dtype=torch.float64)
+    in_camera = cams.viewmats.double() @ centre  # [B, 4]
+    pixel = (torch.tensor(K, dtype=torch.float64) @ in_camera[:, :3].T).T
+    assert (in_camera[:, 2] > 0).all()  # in front
+    assert torch.allclose(pixel[:, :2] / pixel[:, 2:], torch.tensor([32.0, 32.0], dtype=torch.float64), atol=1e-3)
+    # up is up in the image: the world up direction maps to the camera's -y
+    assert (cams.viewmats[:, 1, :3].double() @ torch.tensor(UP, dtype=torch.float64) < 0).all()
+
+
+def test_unit_coordinates_round_trip_and_the_cube_is_the_space():
+    space = shell(azimuth_start_deg=300.0, azimuth_span_deg=120.0)
+    unit = torch.rand(50, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    poses = space.poses_of_unit(unit)
+    assert space.contains(poses).all()
+    assert torch.allclose(space.unit_of_poses(poses), unit, atol=1e-9)
+    outside = torch.tensor([[200.0, 30.0, 4.0], [10.0, 80.0, 4.0], [10.0, 30.0, 6.0]], dtype=torch.float64)
+    assert not space.contains(outside).any()
+
+
+@pytest.mark.parametrize("start,width,clockwise", [(0.0, 120.0, True), (30.0, 90.0, False), (350.0, 60.0, False)])
+def test_a_sector_restricted_shell_holds_exactly_the_sectors_poses(start, width, clockwise):
+    space = shell()
+    sector = SectorManifold(start, width, clockwise, up=list(UP), center=list(space.centre))
+    inside = space.within_sector(sector)
+    cams = inside.cameras(inside.sample(60, torch.Generator().manual_seed(2)))
+    assert sector.contains(cams).all()
+    rest = space.cameras(space.sample(400, torch.Generator().manual_seed(3)))
+    in_sector = sector.contains(rest)
+    az = pose_coordinates(rest, torch.tensor(space.centre), torch.tensor(UP))[0]
+    in_shell = inside.contains(torch.stack([az, torch.full_like(az, 30.0), torch.full_like(az, 4.0)], 1))
+    assert torch.equal(in_sector, in_shell)
+    with pytest.raises(ValueError, match="differ"):
+        space.within_sector(SectorManifold(start, width, clockwise, up=list(UP), center=[0.0, 0.0, 0.0]))
+
+
+def test_the_space_a_capture_spans():
+    all_round = shell()
+    cams = all_round.cameras(torch.tensor([[a, 20.0 + a / 40, 4.0] for a in range(0, 360, 30)], dtype=torch.float64))
+    found = LookAtShell.spanning(cams, torch.tensor(all_round.centre), torch.tensor(UP), scene_radius=1.0)
+    assert (found.azimuth_start_deg, found.azimuth_span_deg) == (0.0, 360.0)
+    assert found.elevation_deg == pytest.approx((20.0, 28.25), abs=1e-3)
+    assert found.radius == pytest.approx((4.0, 4.0), abs=1e-4) and found.width == 64
+    arc = all_round.cameras(torch.tensor([[a, 30.0, 3.0 + a / 100] for a in (330, 350, 10, 40)], dtype=torch.float64))
+    found = LookAtShell.spanning(arc, torch.tensor(all_round.centre), torch.tensor(UP))
+    assert found.azimuth_start_deg == pytest.approx(330.0, abs=1e-3)
+    assert found.azimuth_span_deg == pytest.approx(70.0, abs=1e-3)
+    assert found.radius == pytest.approx((3.1, 6.5), abs=1e-4)  # 3 + a / 100 at a = 10 and 350
+
+
+@pytest.mark.parametrize("changes,match", [
+    ({"elevation_deg": (40.0, 10.0)}, "elevation_deg"),
+    ({"elevation_deg": (-95.0, 10.0)}, "elevation_deg"),
+    ({"radius": (5.0, 3.0)}, "radius"),
+    ({"radius": (1.0, 3.0)}, "inside the scene"),
+    ({"azimuth_span_deg": 0.0}, "azimuth_span_deg"),
+    ({"up": (0.0, 0.0, 2.0)}, "unit vector"),
+])
+def test_bad_bounds_are_config_errors_naming_the_bound(changes, match):
+    with pytest.raises(ValueError, match=match):
+        shell(**changes)
+
+
+def planted(target: torch.Tensor, space: LookAtShell):
+    """A score whose minimum is the camera position of ``target`` (distance of the eyes)."""
+    goal = space.cameras(target[None]).centers.double()
+
+    def score(poses):
+        return (space.cameras(poses).centers.double() - goal).norm(dim=1)
+    return score
+
+
+def test_the_search_finds_a_planted_optimum_within_bounds_and_is_seeded():
+    space = shell(azimuth_start_deg=20.0, azimuth_span_deg=140.0)
+    target = torch.tensor([95.0, 40.0, 4.2], dtype=torch.float64)
+    starts = space.sample(6, torch.Generator().manual_seed(4))
+    state = np.random.get_state()
+    result = search_poses(planted(target, space), space, starts, SearchBudget(evaluations=200), seed=7)
+    assert np.array_equal(np.random.get_state()[1], state[1])  # NumPy's global generator untouched
+    assert result.evaluations <= 200 and result.starts == 6
+    assert space.contains(result.poses).all()
+    assert result.score <= result.best_start_score
+    assert (result.pose - target).abs().max() < 0.5, result.pose
+    again = search_poses(planted(target, space), space, starts, SearchBudget(evaluations=200), seed=7)
+    assert torch.equal(again.poses, result.poses)
+    other = search_poses(planted(target, space), space, starts, SearchBudget(evaluations=200), seed=8)
+    assert not torch.equal(other.poses, result.poses)
+
+
+def test_the_search_crosses_the_seam_of_a_full_circle_and_keeps_to_a_budget():
+    space = shell()
+    target = torch.tensor([355.0, 30.0, 4.0], dtype=torch.float64)
+    starts = torch.tensor([[15.0, 30.0, 4.0]], dtype=torch.float64)
+    result = search_poses(planted(target, space), space, starts, SearchBudget(evaluations=150), seed=0)
+    assert (result.pose[0] - 355.0 + 180) % 360 - 180 == pytest.approx(0.0, abs=1.0)
+    assert result.evaluations <= 150
+    one = search_poses(planted(target, space), space, starts, SearchBudget(evaluations=1), seed=0)
+    assert one.evaluations == 1 and torch.equal(one.pose, starts[0])
+    with pytest.raises(ValueError, match="inside the pose space"):
+        search_poses(planted(target, space), space, torch.tensor([[15.0, 80.0, 4.0]]), SearchBudget(), seed=0)
+    with pytest.raises(ValueError, match="evaluations"):
+        SearchBudget(evaluations=0)
+
+
+@pytest.fixture(scope="module")
+def generated_scene(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("world") / "scene", seed=0, size=24, n_train=6, n_test=2)
+
+
+def test_the_generated_world_gives_back_the_stored_image_at_a_dataset_pose(generated_scene):
+    scene = load_scene(generated_scene, width=16)  # resized as episodes read it
+    train = scene.split("train")
+    world = GeneratedWorld(stored_size=24, background=scene.background)
+    captured = world.capture(train.cameras[[0, 3]])
+    assert torch.equal(captured, train.images.stack([0, 3]))
+    bad = Cameras(train.cameras.viewmats[:1], train.cameras.Ks[:1] * 1.2, 16, 16)
+    with pytest.raises(ValueError, match="intrinsics"):
+        world.capture(bad)
+
+
+def test_the_generated_world_renders_a_pose_off_the_dataset(generated_scene):
+    scene = load_scene(generated_scene, width=16)
+    cams = scene.split("train").cameras
+    centre = torch.zeros(3)
+    space = LookAtShell.spanning(cams, centre, torch.tensor(UP), scene_radius=1.0)
+    off = space.cameras(torch.tensor([[123.0, 33.0, 4.0]], dtype=torch.float64))
+    image = GeneratedWorld(24, scene.background).capture(off)
+    assert image.shape == (1, 16, 16, 3) and 0 <= float(image.min()) and float(image.max()) <= 1
+    assert float((image - scene.background).abs().max()) > 0.1  # the object is in view
+    assert math.isclose(off.Ks[0, 0, 0].item(), 0.5 * 16 / math.tan(0.5 * CAMERA_ANGLE_X), rel_tol=1e-5)
+
+
+def test_a_twin_renders_a_training_pose_close_to_its_photo(generated_scene):
+    from pipeline.active.config import tiny_episode
+    from pipeline.fit.init import random_in_box
+    scene = load_scene(generated_scene, width=16)
+    train = scene.split("train")
+    cfg = tiny_episode().fit.with_changes(iterations=300)
+    lo, hi = scene.bounds()
+    init = random_in_box(600, lo.float(), hi.float(), cfg.sh_degree, 0, cfg.init_opacity)
+    twin = train_twin(init, train.cameras, train.images.stack(list(range(len(train.cameras)))), cfg,
+                      scene.background)
+    world = TwinWorld(twin, scene.background)
+    shot = world.capture(train.cameras[[1]])[0]
+    photo = train.images.stack([1])[0]
+    mse = float((shot - photo).square().mean())
+    assert -10 * math.log10(mse) > 18.0  # measured 29.2 dB (the untrained init: 8.6 dB)
