@@ -181,3 +181,94 @@ def test_a_twin_renders_a_training_pose_close_to_its_photo(generated_scene):
     photo = train.images.stack([1])[0]
     mse = float((shot - photo).square().mean())
     assert -10 * math.log10(mse) > 18.0  # measured 29.2 dB (the untrained init: 8.6 dB)
+
+
+# -- the episode off the pool (world=generated) ---------------------------------------------------
+SEARCH = {"evaluations": 10, "pool_starts": 2, "random_starts": 2}
+
+
+@pytest.fixture(scope="module")
+def episode_scene(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("world_ep") / "scene", seed=0, size=32, n_train=12, n_test=4)
+
+
+def world_config(**changes):
+    from pipeline.active.config import tiny_episode
+    from pipeline.data.protocols import ProtocolConfig
+    base = {"strategy": "gopre", "world": "generated", "search": SEARCH,
+            "protocol": ProtocolConfig(initial_views=2, budget=4, probes=3)}
+    return tiny_episode(**{**base, **changes})
+
+
+def test_an_episode_off_the_pool_captures_searched_poses_and_trains_on_them(episode_scene, tmp_path):
+    from pipeline.active import run_episode
+    from pipeline.active.episode import Episode
+    scene = load_scene(episode_scene, width=32)
+    cfg = world_config()
+    world = GeneratedWorld(32, scene.background)
+    checked = []
+
+    def on_selection(ep, rec):  # the image trained on is the world's image of the recorded pose
+        view = rec.selected[0]
+        camera = ep.space.cameras(torch.tensor(rec.poses))
+        assert torch.equal(ep.taken_images()[ep.taken.index(view)], world.capture(camera)[0])
+        assert torch.allclose(ep.taken_cameras().viewmats[ep.taken.index(view)], camera.viewmats[0])
+        checked.append(view)
+    result = run_episode(scene, cfg, on_selection=on_selection)
+    pool_size = len(scene.split("train").cameras)
+    assert checked == result.selected
+    assert len(result.selected) == 2 and all(v >= pool_size for v in result.selected)
+    assert [v - pool_size for v in result.selected] == [0, 1] and len(result.acquired_poses) == 2
+    space = Episode(scene, cfg).space
+    assert space.contains(torch.tensor(result.acquired_poses)).all()
+    for rec, pose in zip(result.rounds[:-1], result.acquired_poses):
+        assert rec.poses == [pose] and rec.selected[0] >= pool_size
+        assert rec.search["score"] <= rec.search["best_start_score"] and rec.search["evaluations"] <= 10
+        assert len(rec.scores) == rec.candidates  # the pool was scored too
+    assert "acquired_poses" in result.to_dict()
+
+
+def test_an_interrupted_episode_off_the_pool_resumes_to_the_same_poses(episode_scene, tmp_path):
+    from pipeline.active import run_episode
+    scene = load_scene(episode_scene, width=32)
+    cfg = world_config()
+    whole = run_episode(scene, cfg)
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_first(rec):
+        if rec.round == 0:
+            raise Stop
+    with pytest.raises(Stop):
+        run_episode(scene, cfg, tmp_path / "ck", on_round=stop_after_first)
+    resumed = run_episode(scene, cfg, tmp_path / "ck")
+    assert resumed.acquired_poses == whole.acquired_poses and resumed.selected == whole.selected
+    assert resumed.final.psnr == whole.final.psnr
+
+
+def test_a_goal_episode_searches_inside_the_target_sector(episode_scene):
+    from pipeline.active import run_episode
+    from pipeline.active.episode import Episode
+    from pipeline.data.protocols import ProtocolConfig, resolved_manifold, scene_up
+    scene = load_scene(episode_scene, width=32)
+    cfg = world_config(protocol=ProtocolConfig(kind="goal", initial_views=2, budget=3, probes=2))
+    result = run_episode(scene, cfg)
+    manifold = resolved_manifold(cfg.protocol.manifold, scene, scene_up(scene, scene.all_cameras()))
+    cams = Episode(scene, cfg).space.cameras(torch.tensor(result.acquired_poses))
+    assert manifold.contains(cams).all()
+
+
+def test_bad_world_settings_name_the_key(episode_scene):
+    from pipeline.active.config import tiny_episode
+    from pipeline.active.episode import Episode
+    for changes, match in (({"world": "moon"}, "world must be one of"),
+                           ({"world": "twin"}, "world_model"),
+                           ({"world": "generated", "search": {"budget": 3}}, r"search: unknown keys \['budget'\]"),
+                           ({"search": {"evaluations": 3}}, "needs a capture simulator"),
+                           ({"world": "generated", "search": {"pool_starts": 0, "random_starts": 0}}, "at least one start"),
+                           ({"world": "generated", "views_per_round": 2}, "views_per_round must be 1")):
+        with pytest.raises(ValueError, match=match):
+            tiny_episode(**changes)
+    with pytest.raises(ValueError, match="cannot score a pose"):
+        Episode(load_scene(episode_scene, width=32), tiny_episode(strategy="random", world="generated"))

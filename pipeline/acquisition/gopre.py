@@ -11,12 +11,15 @@ it; tau enters the score only, the posterior is the paper's unit-noise one),
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import torch
+from torch import Tensor
 
 from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
                                        greedy_pick_sparse, pool_and_train_fishers, sparse_fishers,
                                        sparse_fishers_reusing, summed_fisher, timed_selection)
+from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec, fused_fisher_available
 from pipeline.fisher.features import PARAM_GROUPS
 from pipeline.fisher.posterior import (POSTERIOR_LAMBDA, goal_hessian, gopre_limit_score,
@@ -98,6 +101,20 @@ class GoPreStrategy:
                 return gopre_scores_sparse(posterior_variance(h_now, self.lam), goal, views, self.tau)
             return greedy_pick_sparse(cands, h, scores, count)
         return run
+
+    def pose_scorer(self, ctx: SelectionContext) -> Callable[[Cameras], Tensor]:
+        """The score ``select`` gives a candidate, for any cameras [B] (lower is better) on ctx's
+        model, taken views and probes: what a search over the pose space minimises. The posterior
+        and the goal Hessian are computed once; each call computes its cameras' Fishers."""
+        if self.goal == "probes" and (ctx.probes is None or len(ctx.probes) == 0):
+            raise ValueError("gopre needs probe poses from the target manifold (ctx.probes)")
+        h = fisher_vectors(ctx, ctx.taken, self.spec).sum(0) if len(ctx.taken) else None
+        score = self._scorer(fisher_vectors(ctx, ctx.probes, self.spec) if self.goal == "probes" else None)
+
+        def scores(cameras: Cameras) -> Tensor:
+            fishers = fisher_vectors(ctx, cameras, self.spec)  # [B, D]
+            return score(h if h is not None else torch.zeros_like(fishers[0]), fishers)
+        return scores
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         if self.goal == "probes" and (ctx.probes is None or len(ctx.probes) == 0):

@@ -19,6 +19,10 @@ from pipeline.data.protocols import ProtocolConfig
 from pipeline.fit.config import DensifyConfig, FitConfig, paper_preset
 
 POLICIES = ("reset_opacity", "reload", "continue")
+# where a view's image comes from: the dataset's pool (every strategy), or a capture simulator that
+# renders any pose (pipeline.world): the pick is then a pose searched in the pose space
+WORLDS = ("dataset", "generated", "twin")
+SEARCH_KEYS = {"evaluations": 60, "pool_starts": 3, "random_starts": 3, "seconds": None}
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,9 @@ class EpisodeConfig:
     lpips: bool = True                  # try LPIPS at the final evaluation
     seed: int = 0
     init: str | None = None             # "ply:PATH": start from a 3DGS PLY instead of points/box
+    world: str = "dataset"              # dataset | generated | twin (see WORLDS)
+    world_model: str | None = None      # twin: "ply:PATH" of the reference splat
+    search: dict = field(default_factory=dict)  # pose search (world != dataset): SEARCH_KEYS
 
     def __post_init__(self) -> None:
         if self.post_selection not in POLICIES:
@@ -48,16 +55,49 @@ class EpisodeConfig:
         if self.init is not None and not (isinstance(self.init, str) and self.init.startswith("ply:")
                                           and len(self.init) > 4):
             raise ValueError(f"init must be 'ply:PATH' or null, got {self.init!r}")
+        self._check_world()
+
+    def _check_world(self) -> None:
+        if self.world not in WORLDS:
+            raise ValueError(f"world must be one of {WORLDS}, got {self.world!r}")
+        if (self.world == "twin") != (self.world_model is not None):
+            raise ValueError("world_model ('ply:PATH' of the reference splat) is set with world=twin and only then, "
+                             f"got world={self.world!r}, world_model={self.world_model!r}")
+        if self.world_model is not None and not (isinstance(self.world_model, str)
+                                                 and self.world_model.startswith("ply:")):
+            raise ValueError(f"world_model must be 'ply:PATH', got {self.world_model!r}")
+        unknown = set(self.search) - set(SEARCH_KEYS)
+        if unknown:
+            raise ValueError(f"search: unknown keys {sorted(unknown)}; allowed {sorted(SEARCH_KEYS)}")
+        if self.search and self.world == "dataset":
+            raise ValueError("search: the pose search needs a capture simulator (world=generated or twin)")
+        if self.world != "dataset" and self.views_per_round != 1:
+            raise ValueError(f"views_per_round must be 1 with world={self.world} (one searched pose per round)")
+        options = self.search_options()
+        if not (isinstance(options["evaluations"], int) and options["evaluations"] >= 1):
+            raise ValueError(f"search.evaluations must be an integer >= 1, got {options['evaluations']!r}")
+        for key in ("pool_starts", "random_starts"):
+            if not (isinstance(options[key], int) and options[key] >= 0):
+                raise ValueError(f"search.{key} must be an integer >= 0, got {options[key]!r}")
+        if options["pool_starts"] + options["random_starts"] < 1:
+            raise ValueError("search: needs at least one start (pool_starts + random_starts >= 1)")
+
+    def search_options(self) -> dict:
+        """The pose search's options, defaults filled in."""
+        return {**SEARCH_KEYS, **self.search}
 
     def with_changes(self, **changes) -> "EpisodeConfig":
         return replace(self, **changes)
 
     def to_dict(self) -> dict:
-        """Plain data (checkpoint fingerprints); ``init`` only when set, so checkpoints written
-        before the option existed still match."""
+        """Plain data (checkpoint fingerprints); ``init`` only when set and the world's fields
+        only off the dataset, so checkpoints written before the options existed still match."""
         out = asdict(self)
         if out["init"] is None:
             del out["init"]
+        if self.world == "dataset":  # so are the world's fields (issue 28)
+            for key in ("world", "world_model", "search"):
+                del out[key]
         return out
 
 

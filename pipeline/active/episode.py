@@ -24,9 +24,11 @@ import torch
 from pipeline.acquisition import SelectionContext, make_strategy
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
+from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
 from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
-from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.cameras import Cameras
+from pipeline.data.protocols import ProtocolViews, build_protocol, resolved_manifold, scene_up
 from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
 from pipeline.data.scene import Scene
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
@@ -112,6 +114,16 @@ class Episode:
         self.init = initial_gaussians(scene, cfg).to(self.device)
         self.extent = episode_extent(scene, self.views)
         self.taken = list(self.views.initial_ids)
+        self.acquired = AcquiredViews(first_id=len(self.pool.cameras))  # views captured off the pool
+        self.world, self.space = None, None
+        if cfg.world != "dataset":
+            if not hasattr(self.strategy, "pose_scorer"):
+                raise ValueError(f"world={cfg.world}: strategy {cfg.strategy!r} cannot score a pose off the pool "
+                                 "(a pose search needs a strategy with pose_scorer: gopre)")
+            self.world = make_world(scene, cfg)
+            manifold = (resolved_manifold(cfg.protocol.manifold, scene, scene_up(scene, scene.all_cameras()))
+                        if cfg.protocol.kind == "goal" else None)
+            self.space = episode_pose_space(scene, self.views, manifold)
         self.records: list[RoundRecord] = []
         self.trainer = self._new_trainer()
         self.done = False
@@ -120,13 +132,27 @@ class Episode:
     def images(self, split, ids: list[int]) -> torch.Tensor:
         return split.images.stack(ids).to(self.device)  # [len(ids), H, W, 3]
 
+    def taken_cameras(self) -> Cameras:
+        """The cameras of the taken views, in order (pool views and captured ones)."""
+        if not any(self.acquired.is_acquired(v) for v in self.taken):
+            return self.pool.cameras[self.taken]
+        return Cameras.cat([self.acquired.camera(v) if self.acquired.is_acquired(v) else self.pool.cameras[[v]]
+                            for v in self.taken])
+
+    def taken_images(self) -> torch.Tensor:
+        """[len(taken), H, W, 3] in taken order."""
+        if not any(self.acquired.is_acquired(v) for v in self.taken):
+            return self.images(self.pool, self.taken)
+        return torch.stack([self.acquired.image(v).to(self.device) if self.acquired.is_acquired(v)
+                            else self.images(self.pool, [v])[0] for v in self.taken])
+
     def _new_trainer(self) -> Trainer:
         fit = self.fit
         if self.cfg.post_selection == "reset_opacity":
             # the paper resets opacities after every selection instead of on 3DGS's fixed schedule;
             # both would put resets right before an evaluation of the PSNR-vs-views curve
             fit = fit.with_changes(densify=replace(fit.densify, periodic_opacity_reset=False))
-        return Trainer(self.init, self.pool.cameras[self.taken], self.images(self.pool, self.taken),
+        return Trainer(self.init, self.taken_cameras(), self.taken_images(),
                        fit, self.background, extent=self.extent, nonfinite_dir=self.folder)
 
     # -- checkpoint ---------------------------------------------------------------------------
@@ -134,12 +160,14 @@ class Episode:
         return {"fingerprint": key, "taken": self.taken, "records": [asdict(r) for r in self.records],
                 "trainer": self.trainer.state_dict(), "generator": self.generator.get_state(),
                 "torch_rng": torch.get_rng_state(), "done": self.done,
-                "final": self.final.to_dict() if self.final is not None else None}
+                "final": self.final.to_dict() if self.final is not None else None,
+                "acquired": self.acquired.state()}
 
     def restore(self, state: dict) -> None:
         self.taken = list(state["taken"])
         self.records = [RoundRecord.from_dict(r) for r in state["records"]]
-        self.trainer.set_views(self.pool.cameras[self.taken], self.images(self.pool, self.taken))
+        self.acquired.restore(state.get("acquired", {"poses": []}))
+        self.trainer.set_views(self.taken_cameras(), self.taken_images())
         self.trainer.load_state_dict(state["trainer"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
@@ -178,18 +206,34 @@ class Episode:
             remaining = reduce_pool(remaining, self.cfg.pool_keep_fraction, self.generator)
         count = min(self.cfg.views_per_round, self.views.budget - len(self.taken), len(remaining))
         ctx = SelectionContext(self.trainer.rendered_gaussians, self.pool.cameras[remaining], remaining,
-                               self.pool.cameras[self.taken], self.background, self.generator,
-                               self.pool.cameras[rec.probes], self.images(self.pool, self.taken),
+                               self.taken_cameras(), self.background, self.generator,
+                               self.pool.cameras[rec.probes], self.taken_images(),
                                self.trainer.settings, taken_ids=list(self.taken), probe_ids=list(rec.probes))
         cpu = time.process_time()
         sel = self.strategy.select(ctx, count)
-        rec.selection_cpu_seconds = round(time.process_time() - cpu, 3)
         rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)
+        search_seconds = self.search_pose(ctx, rec) if self.world is not None else 0.0
+        rec.selection_cpu_seconds = round(time.process_time() - cpu, 3)
         rec.per_candidate_ms = round(sel.seconds_per_candidate * 1e3, 3)
-        rec.selection_seconds = round(sel.round_seconds, 3)
+        rec.selection_seconds = round(sel.round_seconds + search_seconds, 3)
         rec.fisher_seconds = round(sel.fisher_seconds, 3)
         rec.peak_rss_mb = round(max(sel.peak_rss_mb, peak_rss_mb()), 1)
-        self.taken += sel.chosen
+        self.taken += rec.selected
+
+    def search_pose(self, ctx: SelectionContext, rec: RoundRecord) -> float:
+        """Off the pool (world != dataset): search the strategy's score over the pose space from
+        the pool's best candidates and random poses, capture the best pose; it replaces the pool
+        pick in ``rec.selected`` (the pool's scores stay in ``rec.scores``). Returns the seconds."""
+        start = time.perf_counter()
+        choice = search_next_pose(self.strategy.pose_scorer(ctx), ctx, rec.scores, self.space, self.cfg,
+                                  rec.round)
+        image = self.world.capture(choice.camera).to(self.device)
+        view = self.acquired.add(choice.pose, choice.camera, image)
+        rec.selected, rec.poses = [view], [list(choice.pose)]
+        rec.search = {"score": choice.score, "best_start_score": choice.best_start_score,
+                      "best_pool_score": min(rec.scores.values()), "evaluations": choice.evaluations,
+                      "seconds": choice.seconds}
+        return time.perf_counter() - start
 
     def after_selection(self) -> None:
         policy = self.cfg.post_selection
@@ -198,7 +242,7 @@ class Episode:
             self.trainer = self._new_trainer()
             self.trainer.nonfinite_steps = skipped
             return
-        self.trainer.set_views(self.pool.cameras[self.taken], self.images(self.pool, self.taken))
+        self.trainer.set_views(self.taken_cameras(), self.taken_images())
         if policy == "reset_opacity":
             self.trainer.reset_opacity()
 
@@ -268,7 +312,8 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
                          list(ep.views.initial_ids), ep.taken[len(ep.views.initial_ids):],
                          [r.probes for r in ep.records[:-1]], ep.views.pool_split, ep.views.test_split,
                          list(ep.views.test_ids), ep.curve_ids, ep.records, ep.final,
-                         round(time.perf_counter() - start, 2), ep.trainer.rendered_gaussians)
+                         round(time.perf_counter() - start, 2), ep.trainer.rendered_gaussians,
+                         acquired_poses=ep.acquired.poses if cfg.world != "dataset" else None)
 
 
 def _checkpoint(ep: Episode, folder: Path | None, key: str, on_round, rec: RoundRecord) -> None:

@@ -55,6 +55,10 @@ class RoundRecord:
     # the selection's CPU time (every thread of the process): unlike the wall time it does not grow
     # when other jobs share the cores, so per-round costs of concurrent jobs stay comparable
     selection_cpu_seconds: float | None = None
+    # world != dataset (issue 28): the captured pose of each selected view (azimuth_deg,
+    # elevation_deg, radius) and the search's account (score, best_start_score, evaluations, seconds)
+    poses: list[list[float]] | None = None
+    search: dict | None = None
 
     @classmethod
     def from_dict(cls, data: dict) -> "RoundRecord":
@@ -119,9 +123,13 @@ class EpisodeResult:
     final: FinalMetrics
     wall_seconds: float
     gaussians: Gaussians | None = None  # the final model (not part of ``to_dict``)
+    # world != dataset: the poses of the captured views, in pick order (their ids follow the pool's)
+    acquired_poses: list[list[float]] | None = None
 
     def to_dict(self) -> dict:
         out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("gaussians", "rounds", "final")}
+        if out["acquired_poses"] is None:  # a pool episode's result.json as it always was
+            del out["acquired_poses"]
         out["rounds"] = [asdict(r) for r in self.rounds]
         out["final"] = self.final.to_dict()
         return out

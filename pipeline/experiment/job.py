@@ -58,14 +58,16 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     cams = ep.test.cameras[views]
     with torch.no_grad():
         renders = render(g, cams, bg).rgb.clamp(0, 1)
-    taken = ep.pool.cameras[[i for i in ep.taken if i not in set(rec.selected)]]
+    picked = set(rec.selected)
+    taken = ep.taken_cameras()[[k for k, i in enumerate(ep.taken) if i not in picked]]
     maps = variance_maps(g, taken, cams, bg)
     out = {}
     for i, view in enumerate(views):
         out[f"render_test_{view:04d}"] = png_bytes(renders[i])
         out[f"variance_test_{view:04d}"] = png_bytes(colormap(maps[i].float()))
     for k, view in enumerate(rec.selected):  # one image series (step = views); the id is in the records
-        out["picked" if k == 0 else f"picked_{k + 1}"] = png_bytes(ep.pool.images[view])
+        image = ep.acquired.image(view) if ep.acquired.is_acquired(view) else ep.pool.images[view]
+        out["picked" if k == 0 else f"picked_{k + 1}"] = png_bytes(image)
     return out
 
 

@@ -57,18 +57,21 @@ class LookAtShell:
     # -- construction --------------------------------------------------------------------------
     @staticmethod
     def spanning(cameras: Cameras, centre: Tensor, up: Tensor, scene_radius: float = 0.0,
-                 reference: int = 0, full_circle_gap_deg: float = 90.0) -> "LookAtShell":
+                 reference: int = 0, full_circle_gap_deg: float = 90.0,
+                 full_circle: bool | None = None) -> "LookAtShell":
         """The shell the dataset's ``cameras`` span: their elevation and radius ranges; the full
         circle of azimuths when no gap between neighbouring cameras exceeds
         ``full_circle_gap_deg`` (an object captured all round), else the arc they cover (the
-        complement of the largest gap: a real capture's region). The poses share the first
-        camera's intrinsics and image size."""
+        complement of the largest gap: a real capture's region); ``full_circle`` True or False
+        decides it instead (an object scene is a full shell however few its cameras). The poses
+        share the first camera's intrinsics and image size."""
         up = up.double() / up.double().norm()
         az, el, r = pose_coordinates(cameras, centre, up, reference)
         ordered = torch.sort(az).values
         gaps = torch.cat([ordered[1:] - ordered[:-1], (ordered[:1] + 360) - ordered[-1:]])
         largest = int(torch.argmax(gaps))
-        if float(gaps[largest]) <= full_circle_gap_deg:
+        whole = float(gaps[largest]) <= full_circle_gap_deg if full_circle is None else full_circle
+        if whole:
             start, span = 0.0, 360.0
         else:  # the arc from the camera after the largest gap, counter-clockwise to the one before it
             start = float(ordered[(largest + 1) % len(ordered)])
@@ -80,16 +83,19 @@ class LookAtShell:
 
     def within_sector(self, sector: SectorManifold) -> "LookAtShell":
         """The same shell restricted to a resolved sector's azimuths (the goal protocol). The
-        sector must share this shell's up, centre and reference (it measures the same angles)."""
+        sector must share this shell's up, reference and centre up to a shift along up (then it
+        measures the same azimuths)."""
         if sector.up is None or sector.center is None:
             raise ValueError("pose space: resolve the sector manifold first (its up and centre are unset)")
-        same = (torch.allclose(torch.tensor(sector.up, dtype=torch.float64) / torch.tensor(sector.up).double().norm(),
-                               torch.tensor(self.up, dtype=torch.float64), atol=1e-6)
-                and torch.allclose(torch.tensor(sector.center, dtype=torch.float64),
-                                   torch.tensor(self.centre, dtype=torch.float64), atol=1e-6)
+        up = torch.tensor(self.up, dtype=torch.float64)
+        sector_up = torch.tensor(sector.up, dtype=torch.float64)
+        offset = torch.tensor(sector.center, dtype=torch.float64) - torch.tensor(self.centre, dtype=torch.float64)
+        in_plane = offset - (offset @ up) * up  # centres that differ along up measure the same azimuths
+        same = (torch.allclose(sector_up / sector_up.norm(), up, atol=1e-6)
+                and float(in_plane.norm()) <= 1e-6 * max(1.0, float(offset.norm()))
                 and sector.reference == self.reference)
         if not same:
-            raise ValueError("pose space: the sector's up, centre or reference differ from the shell's")
+            raise ValueError("pose space: the sector's up, centre (in the plane) or reference differ from the shell's")
         if self.azimuth_span_deg < 360:
             raise ValueError("pose space: a sector restricts a full-circle shell only")
         start = sector.start_deg - sector.width_deg if sector.clockwise else sector.start_deg
