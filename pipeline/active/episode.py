@@ -222,17 +222,23 @@ class Episode:
 
     def search_pose(self, ctx: SelectionContext, rec: RoundRecord) -> float:
         """Off the pool (world != dataset): search the strategy's score over the pose space from
-        the pool's best candidates and random poses, capture the best pose; it replaces the pool
-        pick in ``rec.selected`` (the pool's scores stay in ``rec.scores``). Returns the seconds."""
+        the pool's best candidates and random poses. The searched pose is captured by the
+        simulator and replaces the pool pick in ``rec.selected`` when it scores better than the
+        pool's best candidate (whose exact camera need not lie on the pose space's shell); else
+        the pool pick stands (the pose space extends the pool, it never loses a candidate).
+        ``rec.search`` says which; the pool's scores stay in ``rec.scores``. Returns the seconds."""
         start = time.perf_counter()
         choice = search_next_pose(self.strategy.pose_scorer(ctx), ctx, rec.scores, self.space, self.cfg,
                                   rec.round)
-        image = self.world.capture(choice.camera).to(self.device)
-        view = self.acquired.add(choice.pose, choice.camera, image)
-        rec.selected, rec.poses = [view], [list(choice.pose)]
+        best_pool = min(rec.scores.values())
         rec.search = {"score": choice.score, "best_start_score": choice.best_start_score,
-                      "best_pool_score": min(rec.scores.values()), "evaluations": choice.evaluations,
-                      "seconds": choice.seconds}
+                      "best_pool_score": best_pool, "evaluations": choice.evaluations,
+                      "seconds": choice.seconds, "taken": "pool"}
+        if choice.score < best_pool - 1e-9 * abs(best_pool):  # the same pose again is no gain
+            image = self.world.capture(choice.camera).to(self.device)
+            rec.selected = [self.acquired.add(choice.pose, choice.camera, image)]
+            rec.poses = [list(choice.pose)]
+            rec.search["taken"] = "search"
         return time.perf_counter() - start
 
     def after_selection(self) -> None:
@@ -313,7 +319,8 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
                          [r.probes for r in ep.records[:-1]], ep.views.pool_split, ep.views.test_split,
                          list(ep.views.test_ids), ep.curve_ids, ep.records, ep.final,
                          round(time.perf_counter() - start, 2), ep.trainer.rendered_gaussians,
-                         acquired_poses=ep.acquired.poses if cfg.world != "dataset" else None)
+                         acquired_poses=ep.acquired.poses if cfg.world != "dataset" else None,
+                         acquired_cameras=ep.acquired.cameras)
 
 
 def _checkpoint(ep: Episode, folder: Path | None, key: str, on_round, rec: RoundRecord) -> None:

@@ -19,8 +19,8 @@ from torch import Tensor
 from pipeline.acquisition import SelectionContext
 from pipeline.active.config import EpisodeConfig
 from pipeline.cameras import Cameras
-from pipeline.data.manifolds import SectorManifold, estimate_up
-from pipeline.data.protocols import ProtocolViews
+from pipeline.data.manifolds import SectorManifold
+from pipeline.data.protocols import ProtocolViews, scene_up
 from pipeline.data.scene import Scene
 from pipeline.splat import ply
 from pipeline.world import GeneratedWorld, LookAtShell, SearchBudget, TwinWorld, World, pose_coordinates, search_poses
@@ -93,8 +93,8 @@ def episode_pose_space(scene: Scene, views: ProtocolViews, manifold=None) -> Loo
         # box centre's height and takes the sector centre's place in the plane
         offset = torch.tensor(manifold.center, dtype=torch.float64) - centre
         centre = centre + offset - (offset @ up) * up
-    else:
-        up = estimate_up(cams)
+    else:  # the protocols' up: z for an object scene, estimated from every camera of a real one
+        up = scene_up(scene, scene.all_cameras())
     # an object scene's bounding radius must stay outside every pose; a real capture's cameras
     # stand inside its point cloud's box, so there the bound does not apply
     obj = scene.format == "blender"  # an object scene: the whole shell around it

@@ -125,9 +125,21 @@ class EpisodeResult:
     gaussians: Gaussians | None = None  # the final model (not part of ``to_dict``)
     # world != dataset: the poses of the captured views, in pick order (their ids follow the pool's)
     acquired_poses: list[list[float]] | None = None
+    acquired_cameras: "Cameras | None" = None  # their cameras (not part of ``to_dict``)
+
+    def taken_cameras(self, pool_cameras: "Cameras") -> "Cameras":
+        """The cameras of the initial and selected views, in order: pool ids index ``pool_cameras``,
+        the ids after the pool's the captured views."""
+        from pipeline.cameras import Cameras
+        ids = self.initial + self.selected
+        n = len(pool_cameras)
+        if all(i < n for i in ids):
+            return pool_cameras[ids]
+        return Cameras.cat([self.acquired_cameras[[i - n]] if i >= n else pool_cameras[[i]] for i in ids])
 
     def to_dict(self) -> dict:
-        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("gaussians", "rounds", "final")}
+        out = {f.name: getattr(self, f.name) for f in fields(self)
+               if f.name not in ("gaussians", "rounds", "final", "acquired_cameras")}
         if out["acquired_poses"] is None:  # a pool episode's result.json as it always was
             del out["acquired_poses"]
         out["rounds"] = [asdict(r) for r in self.rounds]

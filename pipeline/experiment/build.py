@@ -145,6 +145,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
     if job_cfg["kind"] not in JOB_KINDS:
         raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
     check_job_section(job_cfg)
+    world = world_section(_container(cfg, "world") or {"kind": "dataset"})
     try:
         splat = job_form(splat)
     except ValueError as err:
@@ -175,6 +176,8 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                 _set_dotted(job, key, value)
             job["axes"] = axes
             job["setting"] = ", ".join(f"{k}={v}" for k, v in axes.items())
+            if world is not None:  # part of what the job computes (absent for the pool)
+                job["world"] = copy.deepcopy(world)
             job["config_hash"] = config_hash(job)
             job["execution"] = {"threads": int(job_cfg["threads"]), "device": str(job_cfg["device"]),
                                 "retries": int(job_cfg["retries"]),
@@ -218,12 +221,39 @@ def episode_config(job: Job) -> EpisodeConfig:
                    if splat.get(k) is not None}
         if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
             changes["curve_test_views"] = None
+        changes.update(world_changes(job.world))
         return replace(base, fit=fit, protocol=protocol, strategy=job.strategy,
                        strategy_options=dict(job.options), seed=job.seed, **changes)
     except ConfigError:
         raise
     except (ValueError, TypeError) as err:
         raise ConfigError(f"splat/protocol of job {job.method} on {job.scene}: {err}") from None
+
+
+WORLD_KEYS = {"kind", "model", "search"}
+
+
+def world_section(data: dict) -> dict | None:
+    """The ``world`` section: None for the dataset's pool, else checked and kept as plain data."""
+    check_keys("world", data, WORLD_KEYS)
+    if data.get("kind", "dataset") == "dataset":
+        if data.get("model") is not None or data.get("search"):
+            raise ConfigError("world: model and search need a capture simulator (world=generated or twin)")
+        return None
+    if data["kind"] == "twin":
+        model = data.get("model")
+        if not (isinstance(model, str) and model.startswith("ply:")):
+            raise ConfigError(f"world.model: world=twin needs the reference splat as ply:PATH, got {model!r}")
+        if not Path(model[len("ply:"):]).is_file():
+            raise ConfigError(f"world.model: {model[len('ply:'):]}: no such file")
+    return {k: v for k, v in data.items() if v is not None}
+
+
+def world_changes(world: dict | None) -> dict:
+    """The EpisodeConfig fields of a job's world (none for the pool)."""
+    if world is None:
+        return {}
+    return {"world": world["kind"], "world_model": world.get("model"), "search": dict(world.get("search") or {})}
 
 
 def _protocol(data: dict) -> ProtocolConfig:
@@ -245,8 +275,11 @@ def uncertainty_config(job: Job) -> UncertaintyConfig:
 def validate_job(job: Job) -> None:
     episode_config(job)
     try:
-        make_strategy(job.strategy, **job.options)
+        strategy = make_strategy(job.strategy, **job.options)
     except ValueError as err:
         raise ConfigError(f"method.{job.method}: {err}") from None
+    if job.world is not None and not hasattr(strategy, "pose_scorer"):
+        raise ConfigError(f"method.{job.method}: world={job.world['kind']} searches poses off the pool, which "
+                          f"needs a strategy that scores any camera (gopre); {job.strategy!r} picks from the pool only")
     if job.kind == "uncertainty":
         uncertainty_config(job)

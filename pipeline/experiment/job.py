@@ -124,7 +124,7 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts)
-    taken = scene.split(result.pool_split).cameras[result.initial + result.selected]
+    taken = result.taken_cameras(scene.split(result.pool_split).cameras)
     strips = uncertainty_strips(result.gaussians, background, taken, views.cameras[shown], truth, preds)
     for view, row in zip(shown, strips):
         artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)

@@ -48,7 +48,11 @@ def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dic
              "num_gaussians": r.num_gaussians, "per_candidate_ms": r.per_candidate_ms or None,
              "selection_seconds": r.selection_seconds or None,
              "selection_cpu_seconds": r.selection_cpu_seconds or None, "peak_rss_mb": r.peak_rss_mb,
-             "selected": json.dumps(r.selected)} for r in rounds]
+             "selected": json.dumps(r.selected),
+             **({"poses": json.dumps(r.poses), "search_taken": r.search["taken"],
+                 "search_score": r.search["score"], "search_best_start_score": r.search["best_start_score"],
+                 "search_best_pool_score": r.search["best_pool_score"]} if r.search else {})}
+            for r in rounds]
     picks = [r for r in rounds if r.selected]
     rows.append({**base, "kind": "final", "num_views": rounds[-1].num_views if rounds else None,
                  **final_columns(episode.final), "wall_seconds": seconds,
@@ -56,7 +60,8 @@ def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dic
                  "selection_seconds": float(np.mean([r.selection_seconds for r in picks])) if picks else None,
                  "selection_cpu_seconds": _mean_present([r.selection_cpu_seconds for r in picks]),
                  "peak_rss_mb": max((r.peak_rss_mb for r in rounds), default=None),
-                 "selected": json.dumps(episode.selected), "initial": json.dumps(episode.initial)})
+                 "selected": json.dumps(episode.selected), "initial": json.dumps(episode.initial),
+                 **({"poses": json.dumps(episode.acquired_poses)} if episode.acquired_poses else {})})
     return rows
 
 

@@ -48,11 +48,15 @@ class Job:
     execution: Execution | None = None
     index: int | None = None         # the config's order (tables keep it)
     code_version: str | None = None
+    world: dict | None = None        # the capture simulator off the pool (None: the dataset's pool)
 
     def to_dict(self) -> dict:
-        """The plain form, key for key as ``jobs.json`` has always held it."""
+        """The plain form, key for key as ``jobs.json`` has always held it (``world`` only when a
+        job captures off the pool, so a pool job's hash is what it always was)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["execution"] = asdict(self.execution) if self.execution is not None else None
+        if out["world"] is None:
+            del out["world"]
         return out
 
     @classmethod

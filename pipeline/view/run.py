@@ -146,6 +146,9 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
     else:
         raise ValueError(f"{folder}: neither artifacts/result.json nor checkpoint/episode.pt: "
                          "the job has not finished a round")
+    if job.world is not None:
+        raise ValueError(f"{folder}: an episode off the pool (world={job.world['kind']}): the viewer does "
+                         "not show captured poses yet (issue 28); its records are in the sweep's records")
     cfg = episode_config(job)
     scene = scene_of(job, result, scene, data_root)
     views = build_protocol(scene, cfg.protocol)
