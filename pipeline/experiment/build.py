@@ -28,7 +28,8 @@ from pipeline.experiment.spec import Job
 from pipeline.experiment.splat_section import job_form
 
 JOB_KINDS = ("episode", "uncertainty")
-METHOD_KEYS = {"strategy", "options", "protocol", "splat"}  # protocol/splat: overrides for this method
+# protocol/splat: overrides for this method; world: this method's capture simulator (gopre_search)
+METHOD_KEYS = {"strategy", "options", "protocol", "splat", "world"}
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
               "init", "fit"}
@@ -176,8 +177,9 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                 _set_dotted(job, key, value)
             job["axes"] = axes
             job["setting"] = ", ".join(f"{k}={v}" for k, v in axes.items())
-            if world is not None:  # part of what the job computes (absent for the pool)
-                job["world"] = copy.deepcopy(world)
+            job_world = world_section(method["world"]) if method.get("world") else world
+            if job_world is not None:  # part of what the job computes (absent for the pool)
+                job["world"] = copy.deepcopy(job_world)
             job["config_hash"] = config_hash(job)
             job["execution"] = {"threads": int(job_cfg["threads"]), "device": str(job_cfg["device"]),
                                 "retries": int(job_cfg["retries"]),
