@@ -123,6 +123,13 @@ def test_sparsification_figure_and_ause_table(tmp_path):
     summary = make_report(path, tmp_path / "out")
     assert set(summary["figures"]["sparsification.png"]) == {"gopre", "random", "oracle"}
     assert "**0.000**" in summary["tables"] and "<ins>0.100</ins>" in summary["tables"]
+    # two scenes: one panel each (the paper's Fig. 7), each scene's own curve, not their mean
+    other = pd.DataFrame(rows).assign(scene="bonsai", dataset="colmap")
+    other.loc[other["kind"] == "sparsification", "psnr"] += 5.0
+    pd.concat([pd.DataFrame(rows), other]).to_parquet(path)
+    series = make_report(path, tmp_path / "out2")["figures"]["sparsification.png"]
+    assert set(series) == {f"{s}/{m}" for s in ("lego", "bonsai") for m in ("gopre", "random", "oracle")}
+    assert series["bonsai/gopre"][1] == [25.0, 26.0, 27.0] and series["lego/gopre"][1] == [20.0, 21.0, 22.0]
 
 
 def test_missing_records_is_a_clear_error(tmp_path):

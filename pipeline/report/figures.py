@@ -60,21 +60,30 @@ def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple
 
 
 def sparsification(curves: pd.DataFrame, ause: pd.DataFrame, path: Path) -> dict[str, tuple[list, list]]:
-    """Mean PSNR of the remaining views vs fraction removed, AUSE in the legend (mean over jobs)."""
-    fig, ax = plt.subplots(figsize=(5, 3.6))
+    """One panel per scene (the paper's Fig. 7): mean PSNR of the remaining views vs the fraction
+    removed, the AUSE in the legend (means over the scene's jobs). Returns the curves, keyed by
+    method for one scene and by "scene/method" for several."""
+    scenes = list(dict.fromkeys(curves["scene"])) if "scene" in curves else [None]
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 3.6), squeeze=False)
     series = {}
-    mean_ause = ause.groupby("uncertainty_method")["ause"].mean()
-    for name, data in curves.groupby("uncertainty_method", sort=False):
-        curve = data.groupby("fraction")["psnr"].mean()
-        x, y = curve.index.tolist(), curve.tolist()
-        series[name] = (x, y)
-        style = {"oracle": dict(color="black", ls="--"), "random": dict(color="gray", ls=":")}.get(name, {})
-        label = name if name == "oracle" else f"{name} (AUSE {mean_ause.get(name, np.nan):.3f})"
-        ax.plot(x, y, marker="o", ms=3, label=label, **style)
-    ax.set_xlabel("fraction of test views removed (most uncertain first)")
-    ax.set_ylabel("mean PSNR of the rest (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    for ax, scene in zip(axes[0], scenes):
+        part = curves if scene is None else curves[curves["scene"] == scene]
+        scores = ause if scene is None or "scene" not in ause else ause[ause["scene"] == scene]
+        mean_ause = scores.groupby("uncertainty_method")["ause"].mean()
+        for name, data in part.groupby("uncertainty_method", sort=False):
+            curve = data.groupby("fraction")["psnr"].mean()
+            x, y = curve.index.tolist(), curve.tolist()
+            series[name if len(scenes) == 1 else f"{scene}/{name}"] = (x, y)
+            style = {"oracle": dict(color="black", ls="--"), "random": dict(color="gray", ls=":")}.get(name, {})
+            label = name if name == "oracle" else f"{name} (AUSE {mean_ause.get(name, np.nan):.3f})"
+            ax.plot(x, y, marker="o", ms=3, label=label, **style)
+        seeds = sorted(set(part["seed"])) if "seed" in part else []
+        if scene is not None:
+            ax.set_title(f"{scene} ({len(seeds)} seed{'s' if len(seeds) != 1 else ''})", fontsize=9)
+        ax.set_xlabel("fraction of test views removed (most uncertain first)")
+        ax.set_ylabel("mean PSNR of the rest (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
     return series
