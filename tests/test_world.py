@@ -288,3 +288,20 @@ def test_bad_world_settings_name_the_key(episode_scene):
             tiny_episode(**changes)
     with pytest.raises(ValueError, match="cannot score a pose"):
         Episode(load_scene(episode_scene, width=32), tiny_episode(strategy="random", world="generated"))
+
+
+def test_gopre_data_twin_writes_a_twin_that_world_twin_renders(episode_scene, tmp_path, capsys):
+    import json as json_module
+
+    from pipeline.cli.data import main
+    from pipeline.splat import ply
+    out = tmp_path / "twin.ply"
+    assert main(["twin", str(episode_scene), str(out), "--width", "16", "--iterations", "200"]) == 0
+    report = json_module.loads(capsys.readouterr().out)
+    assert out.exists() and report["use"] == f"world=twin world.model=ply:{out}"
+    assert report["train_views"] == 12 and report["test_views"] == 4
+    assert report["train_psnr"] > report["test_psnr"] - 5 and report["train_psnr"] > 15  # it fits
+    scene = load_scene(episode_scene, width=16)
+    shot = TwinWorld(ply.load(out), scene.background).capture(scene.split("train").cameras[[2]])[0]
+    assert -10 * math.log10(float((shot - scene.split("train").images.stack([2])[0]).square().mean())) > 15
+    assert main(["twin", str(episode_scene), str(out), "--width", "4"]) == 1
