@@ -230,6 +230,9 @@ def test_an_episode_off_the_pool_captures_searched_poses_and_trains_on_them(epis
         best_pool = min(rec.scores.values())
         assert len(rec.scores) == rec.candidates and rec.search["best_pool_score"] == best_pool
         assert rec.search["score"] <= rec.search["best_start_score"] and rec.search["evaluations"] <= 30
+        evaluated = torch.tensor(rec.search["evaluated"], dtype=torch.float64)  # the landscape the search saw: [E, 4]
+        assert evaluated.shape == (rec.search["evaluations"], 4) and space.contains(evaluated[:, :3]).all()
+        assert float(evaluated[:, 3].min()) == rec.search["score"]
         if rec.search["taken"] == "search":  # a captured view, after the pool's ids
             assert rec.selected[0] >= pool_size and rec.search["score"] < best_pool and len(rec.poses) == 1
         else:  # the pool pick: the best pool score

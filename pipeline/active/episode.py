@@ -233,7 +233,8 @@ class Episode:
         best_pool = min(rec.scores.values())
         rec.search = {"score": choice.score, "best_start_score": choice.best_start_score,
                       "best_pool_score": best_pool, "evaluations": choice.evaluations,
-                      "seconds": choice.seconds, "taken": "pool"}
+                      "seconds": choice.seconds, "taken": "pool",
+                      "evaluated": choice.evaluated}  # the score landscape the search saw
         if choice.score < best_pool - 1e-9 * abs(best_pool):  # the same pose again is no gain
             image = self.world.capture(choice.camera).to(self.device)
             rec.selected = [self.acquired.add(choice.pose, choice.camera, image)]

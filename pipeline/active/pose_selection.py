@@ -113,6 +113,7 @@ class PoseChoice:
     best_start_score: float
     evaluations: int
     seconds: float
+    evaluated: list[list[float]]  # every evaluated (azimuth_deg, elevation_deg, radius, score), in order
 
 
 def search_next_pose(scorer, ctx: SelectionContext, pool_scores: dict[int, float], space: LookAtShell,
@@ -135,5 +136,6 @@ def search_next_pose(scorer, ctx: SelectionContext, pool_scores: dict[int, float
         starts = space.sample(1, torch.Generator().manual_seed(seed))
     budget = SearchBudget(evaluations=max(options["evaluations"], len(starts)), seconds=options["seconds"])
     result = search_poses(lambda poses: scorer(space.cameras(poses)), space, starts, budget, seed)
+    evaluated = torch.cat([result.poses, result.scores[:, None]], 1).tolist()
     return PoseChoice(result.pose.tolist(), space.cameras(result.pose[None]), result.score,
-                      result.best_start_score, result.evaluations, round(result.seconds, 3))
+                      result.best_start_score, result.evaluations, round(result.seconds, 3), evaluated)

@@ -56,7 +56,8 @@ class RoundRecord:
     # when other jobs share the cores, so per-round costs of concurrent jobs stay comparable
     selection_cpu_seconds: float | None = None
     # world != dataset (issue 28): the captured pose of each selected view (azimuth_deg,
-    # elevation_deg, radius) and the search's account (score, best_start_score, evaluations, seconds)
+    # elevation_deg, radius) and the search's account (score, best_start_score, best_pool_score,
+    # evaluations, seconds, taken: "search" | "pool", evaluated: [[az, el, r, score], ...])
     poses: list[list[float]] | None = None
     search: dict | None = None
 
