@@ -481,3 +481,47 @@ def test_the_viewers_state_rows_in_a_browser(tiny_run):
                 browser.close()
     finally:
         server.stop()
+
+
+# -- an episode off the pool (issue 28) -------------------------------------------------------------
+@pytest.fixture(scope="module")
+def off_pool_run(tmp_path_factory):
+    """experiment=debug with gopre_search (the generated world), the round models kept."""
+    out = tmp_path_factory.mktemp("view_world") / "debug"
+    subprocess.run([str(Path(sys.executable).parent / "gopre-run"), "experiment=debug", "method=[gopre_search]",
+                    "executor=local", "tracking=none", f"output_dir={out}", "job.round_models=true"],
+                   cwd=ROOT, check=True, capture_output=True, timeout=600)
+    return Path(json.loads((out / "jobs.json").read_text())[0]["execution"]["job_dir"])
+
+
+def test_the_viewer_shows_views_captured_off_the_pool_and_the_searched_landscape(off_pool_run):
+    import torch
+
+    from pipeline.cli.view import start
+    from pipeline.view.server import CameraKey
+    server, v = start(str(off_pool_run), port=free_port())
+    try:
+        run = v.run
+        captured = [view for view in run.selected if run.is_captured(view)]
+        assert captured and run.captured is not None and len(run.captured) == len(captured)
+        keys = [CameraKey("captured", view - run.first_captured) for view in captured]
+        assert all(key in v.frustums for key in keys)
+        for index in range(len(run.rounds)):  # a captured view appears in the round that picks it
+            v.show_round(index)
+            taken_or_picked = set(v.state.taken) | set(v.state.picked)
+            for view, key in zip(captured, keys):
+                assert v.frustums[key].visible == (view in taken_or_picked), (index, view)
+            search = run.rounds[index]["search"]
+            assert v.landscape is not None and len(search["evaluated"]) == search["evaluations"]
+        v.show_camera(keys[0])  # its panel: the captured image, a render, a variance map
+        assert "captured off the pool" in v.camera_text.content and "azimuth" in v.camera_text.content
+        truth = np.asarray(v.image_truth.image)
+        expected = np.asarray(run.captured.images[0].clamp(0, 1).mul(255).round().byte())
+        assert truth.shape[0] % expected.shape[0] == 0 and (truth[::truth.shape[0] // expected.shape[0],
+                                                                 ::truth.shape[0] // expected.shape[0]] == expected).all()
+        assert torch.equal(run.cameras_of([captured[0]]).viewmats, run.captured.cameras.viewmats[:1])
+        goal = v.score()  # a goal scored with captured views among the taken ones
+        assert goal is not None and goal.best in run.views.pool_ids
+        assert "captured off the pool" in v.camera_list.content
+    finally:
+        server.stop()

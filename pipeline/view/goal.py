@@ -61,8 +61,8 @@ def score_goal(run: EpisodeRun, state: RoundState, manifold: dict, probes: int, 
     probe_ids = sample_probes(inside, probes, torch.Generator().manual_seed(seed))
     cams = run.pool.cameras
     background = run.scene.background.to(state.model.means)
-    ctx = SelectionContext(state.model, cams[remaining], remaining, cams[state.taken], background,
+    ctx = SelectionContext(state.model, cams[remaining], remaining, run.cameras_of(state.taken), background,
                            torch.Generator().manual_seed(seed), cams[probe_ids],
-                           run.pool.images.stack(state.taken).to(state.model.means))
+                           run.images_of(state.taken).to(state.model.means))
     selection = make_strategy("gopre", **gopre_options(run)).select(ctx, 1)
     return GoalScores(dict(manifold), probe_ids, dict(selection.scores), selection.chosen[0])

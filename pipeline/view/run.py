@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from pipeline.active.config import EpisodeConfig
+from pipeline.cameras import Cameras
 from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.scene import Scene, Split
 from pipeline.experiment.build import episode_config
@@ -42,6 +43,33 @@ class RoundState:
     model_is_final: bool         # True when this round's model was not kept (the final one stands in)
 
 
+class CapturedImages:
+    """The captured views' images (a tensor [A, H, W, 3]) behind the image store's interface."""
+
+    def __init__(self, images: torch.Tensor):
+        self.images = images
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        return self.images[index]
+
+    def stack(self, indices: list[int] | None = None) -> torch.Tensor:
+        return self.images if indices is None else self.images[indices]
+
+
+def captured_split(state: dict) -> Split | None:
+    """The views an episode off the pool captured (a checkpoint's ``acquired`` state), as a split
+    whose index a is the view with id ``pool size + a``; None when it captured none."""
+    acquired = state.get("acquired") or {"poses": []}
+    if not acquired["poses"]:
+        return None
+    cams = Cameras(acquired["viewmats"], acquired["Ks"], acquired["width"], acquired["height"])
+    names = [f"captured at azimuth {p[0]:.1f}, elevation {p[1]:.1f}, radius {p[2]:.3g}" for p in acquired["poses"]]
+    return Split(cams, CapturedImages(acquired["images"]), names)
+
+
 @dataclass
 class EpisodeRun:
     folder: Path
@@ -55,6 +83,7 @@ class EpisodeRun:
     final_model: Gaussians
     final_psnr: float | None     # None while the job runs
     round_models: dict[int, Path] = field(default_factory=dict)
+    captured: Split | None = None  # views captured off the pool (world != dataset): ids after the pool's
 
     @property
     def pool(self) -> Split:
@@ -63,6 +92,36 @@ class EpisodeRun:
     @property
     def test(self) -> Split:
         return self.scene.split(self.views.test_split)
+
+    @property
+    def first_captured(self) -> int:
+        """The id of the first captured view (the pool split's size)."""
+        return len(self.pool.cameras)
+
+    def is_captured(self, view: int) -> bool:
+        return view >= self.first_captured
+
+    def cameras_of(self, ids: list[int]) -> Cameras:
+        """Cameras of pool or captured view ids, in order."""
+        if not any(self.is_captured(v) for v in ids):
+            return self.pool.cameras[ids]
+        return Cameras.cat([self.captured.cameras[[v - self.first_captured]] if self.is_captured(v)
+                            else self.pool.cameras[[v]] for v in ids])
+
+    def images_of(self, ids: list[int]) -> torch.Tensor:
+        """[len(ids), H, W, 3] of pool or captured view ids, in order."""
+        if not any(self.is_captured(v) for v in ids):
+            return self.pool.images.stack(ids)
+        return torch.stack([self.captured.images[v - self.first_captured] if self.is_captured(v)
+                            else self.pool.images[v] for v in ids])
+
+    def pose_space(self):
+        """The episode's pose space (off-pool runs), as the episode built it."""
+        from pipeline.active.pose_selection import episode_pose_space
+        from pipeline.data.protocols import resolved_manifold, scene_up
+        manifold = (resolved_manifold(self.cfg.protocol.manifold, self.scene, scene_up(self.scene, self.scene.all_cameras()))
+                    if self.cfg.protocol.kind == "goal" else None)
+        return episode_pose_space(self.scene, self.views, manifold)
 
     @property
     def title(self) -> str:
@@ -146,15 +205,17 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
     else:
         raise ValueError(f"{folder}: neither artifacts/result.json nor checkpoint/episode.pt: "
                          "the job has not finished a round")
-    if job.world is not None:
-        raise ValueError(f"{folder}: an episode off the pool (world={job.world['kind']}): the viewer does "
-                         "not show captured poses yet (issue 28); its records are in the sweep's records")
+    captured = None
+    if job.world is not None:  # the captured views live in the checkpoint
+        if not checkpoint.exists():
+            raise ValueError(f"{folder}: an episode off the pool needs its checkpoint (the captured views)")
+        captured = captured_split(torch.load(checkpoint, weights_only=False, map_location="cpu"))
     cfg = episode_config(job)
     scene = scene_of(job, result, scene, data_root)
     views = build_protocol(scene, cfg.protocol)
     kept = {i: layout.round_model(i) for i in range(len(records))}
     return EpisodeRun(folder, job, cfg, scene, views, list(initial), list(selected), list(records),
-                      model, final_psnr, {i: p for i, p in kept.items() if p.exists()})
+                      model, final_psnr, {i: p for i, p in kept.items() if p.exists()}, captured)
 
 
 def folder_of_mlflow_run(uri: str, run_id: str) -> Path:

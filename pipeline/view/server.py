@@ -32,13 +32,16 @@ DIRECTIONS = ("clockwise", "counter-clockwise")
 LEGEND = ("**Colours**: initial views **blue** · selected **green** (labelled #k in pick order) · "
           "this round's pick / the goal's next best view **red** · probes **purple** · test views "
           "**grey** (smaller) · remaining candidates from **dark teal** (worst score) to **bright "
-          "cyan** (best) · the protocol's target sector **orange**, a drawn goal's sector **red**")
+          "cyan** (best) · the protocol's target sector **orange**, a drawn goal's sector **red** · "
+          "off the pool (world=generated | twin): captured views in the same colours (their captions "
+          "say so), the poses the round's search evaluated as points from **dark teal** (worst "
+          "score) to **bright cyan** (best)")
 GOAL_KINDS = ("sector", "picked cameras")
 
 
 @dataclass(frozen=True)
 class CameraKey:
-    split: str                   # "pool" or "test"
+    split: str                   # "pool", "test" or "captured" (views captured off the pool)
     index: int                   # view id in that split
 
     @property
@@ -54,11 +57,20 @@ def enlarged(image: np.ndarray, width: int = 256) -> np.ndarray:
 
 def camera_roles(run: EpisodeRun, state: RoundState, goal: GoalScores | None) -> dict[int, tuple[str, str]]:
     """Role and caption of every pool view at ``state``: initial, selected #k (taken before this
-    round), picked (this round's pick, or the drawn goal's next best view), probe, candidate."""
+    round), picked (this round's pick, or the drawn goal's next best view), probe, candidate; and
+    of every view captured off the pool (ids after the pool's): selected, picked, or later."""
     roles: dict[int, tuple[str, str]] = {}
     order = {view: k + 1 for k, view in enumerate(run.selected)}
     probes = goal.probes if goal is not None else state.probes
     picked = [goal.best] if goal is not None else state.picked
+    for a in range(len(run.captured) if run.captured is not None else 0):  # captured off the pool
+        view = run.first_captured + a
+        if view in state.taken:
+            roles[view] = ("selected", f"selected #{order[view]}, captured off the pool")
+        elif view in picked:
+            roles[view] = ("picked", f"picked this round (#{order.get(view, '?')}), captured off the pool")
+        else:
+            roles[view] = ("later", "captured in a later round")
     for view in pool_ids(run):
         if view in run.initial:
             roles[view] = ("initial", "initial view")
@@ -72,6 +84,13 @@ def camera_roles(run: EpisodeRun, state: RoundState, goal: GoalScores | None) ->
         else:
             roles[view] = ("candidate", "candidate")
     return roles
+
+
+def key_of_view(run: EpisodeRun, view: int) -> CameraKey:
+    """The frustum key of a pool or captured view id."""
+    if run.is_captured(view):
+        return CameraKey("captured", view - run.first_captured)
+    return CameraKey("pool", view)
 
 
 class EpisodeViewer:
@@ -90,6 +109,7 @@ class EpisodeViewer:
         self.labels: dict[int, object] = {}
         self.shown: CameraKey | None = None   # the camera the panel shows
         self.goal_sector = None              # the drawn goal's outline, while its scores stand
+        self.landscape = None                # the round's searched poses (off-pool runs)
         rounds = len(run.rounds)
         if rounds == 0:
             raise ValueError(f"{run.folder}: the episode has no finished selection round to show")
@@ -101,7 +121,7 @@ class EpisodeViewer:
         self._add_protocol_sector()
         self._build_gui(rounds)
         self.show_round(self.state.index)
-        self.show_camera(CameraKey("pool", self.state.picked[0]) if self.state.picked else
+        self.show_camera(key_of_view(run, self.state.picked[0]) if self.state.picked else
                          next(iter(self.frustums)))
 
     # -- scene --------------------------------------------------------------------------------
@@ -127,11 +147,12 @@ class EpisodeViewer:
 
     def _add_cameras(self) -> None:
         scale = self._camera_scale()
-        for split, cams in (("pool", self.run.pool.cameras), ("test", self.run.test.cameras)):
+        splits = [("pool", self.run.pool.cameras), ("test", self.run.test.cameras)]
+        if self.run.captured is not None:
+            splits.append(("captured", self.run.captured.cameras))
+        for split, cams in splits:
             positions, wxyz = camera_poses(cams)
-            ids = pool_ids(self.run) if split == "pool" else list(range(len(cams)))
-            if split == "test":
-                ids = list(self.run.views.test_ids)
+            ids = {"pool": pool_ids(self.run), "test": list(self.run.views.test_ids)}.get(split, list(range(len(cams))))
             for view in ids:
                 key = CameraKey(split, view)
                 handle = self.scene.add_camera_frustum(
@@ -219,6 +240,7 @@ class EpisodeViewer:
                 self.goal_text.content = (f"Round changed to {index}: the goal's scores were for another "
                                           "round's model. Press *Score next view* to score it here.")
             self._show_model()
+            self._show_landscape()
             self._colour()
             state = self.state
             model = "the final model (round models not kept: run with job.round_models=true)" \
@@ -229,6 +251,22 @@ class EpisodeViewer:
             if self.shown is not None:  # the panel shows this round's model too
                 self._show_camera(self.shown)
 
+    def _show_landscape(self) -> None:
+        """The score landscape the round's pose search saw: its evaluated poses as points at their
+        camera centres, coloured by the score's standing (off-pool runs only)."""
+        if self.landscape is not None:
+            self.landscape.remove()
+            self.landscape = None
+        search = self.run.rounds[self.state.index].get("search") or {}
+        if not search.get("evaluated"):
+            return
+        evaluated = torch.tensor(search["evaluated"], dtype=torch.float64)
+        centres = self.run.pose_space().cameras(evaluated[:, :3]).centers.double().numpy()
+        standing = score_ranks(dict(enumerate(evaluated[:, 3].tolist())), True)
+        colours = np.array([standing_colour(standing[i]) for i in range(len(evaluated))], dtype=np.uint8)
+        self.landscape = self.scene.add_point_cloud("/landscape", centres.astype(np.float32), colours,
+                                                    point_size=0.25 * self._camera_scale())
+
     def _colour(self) -> None:
         state, goal = self.state, self.goal
         scores = goal.scores if goal is not None else state.scores
@@ -236,7 +274,8 @@ class EpisodeViewer:
         standing = score_ranks(scores, low)
         roles = camera_roles(self.run, state, goal)
         for view, (role, _caption) in roles.items():
-            handle = self.frustums[CameraKey("pool", view)]
+            handle = self.frustums[key_of_view(self.run, view)]
+            handle.visible = role != "later"  # a view captured in a later round is not there yet
             colour = standing_colour(standing[view]) if role == "candidate" and view in standing \
                 else ROLE_COLOURS.get(role, (200, 200, 200))
             handle.color = colour
@@ -248,15 +287,17 @@ class EpisodeViewer:
             handle.remove()
         self.labels = {}
         positions, _ = camera_poses(self.run.pool.cameras)
+        captured, _ = camera_poses(self.run.captured.cameras) if self.run.captured is not None else (None, None)
         order = {view: k + 1 for k, view in enumerate(self.run.selected)}
         for view, (role, _caption) in roles.items():
+            position = captured[view - self.run.first_captured] if self.run.is_captured(view) else positions[view]
             if role == "selected":
                 text = f"#{order[view]}"
             elif role == "picked":
                 text = "next best view" if self.goal is not None else f"next (#{order.get(view, '?')})"
             else:
                 continue
-            self.labels[view] = self.scene.add_label(f"/labels/{view:04d}", text, position=positions[view])
+            self.labels[view] = self.scene.add_label(f"/labels/{view:04d}", text, position=position)
 
     def _camera_listing(self, roles: dict[int, tuple[str, str]]) -> str:
         def ids(role):
@@ -271,6 +312,8 @@ class EpisodeViewer:
             f"- candidates: {sum(r == 'candidate' for r, _ in roles.values())} "
             f"(coloured by score: bright cyan = best, dark teal = worst)",
             f"- test views: {len(self.run.views.test_ids)}",
+            *([f"- captured off the pool: {', '.join(str(v) for v, (r, _) in roles.items() if self.run.is_captured(v) and r != 'later') or 'none yet'}"]
+              if self.run.captured is not None else []),
         ])
 
     def goal_manifold(self) -> dict:
@@ -341,7 +384,7 @@ class EpisodeViewer:
             background = run.scene.background.to(g.means)
             lam = float(gopre_options(run).get("lam", POSTERIOR_LAMBDA))
             _, self.variances[self.state.index] = taken_views_posterior(
-                g, run.pool.cameras[self.state.taken], background, lam=lam)
+                g, run.cameras_of(self.state.taken), background, lam=lam)
         return self.variances[self.state.index]
 
     def show_camera(self, key: CameraKey) -> None:
@@ -354,7 +397,7 @@ class EpisodeViewer:
         if self.camera_choice.value != key.label:
             self.camera_choice.value = key.label
         run, g = self.run, self.state.model
-        split = run.pool if key.split == "pool" else run.test
+        split = {"pool": run.pool, "test": run.test, "captured": run.captured}[key.split]
         cams = split.cameras[[key.index]]
         background = run.scene.background.to(g.means)
         with torch.no_grad():
@@ -364,10 +407,11 @@ class EpisodeViewer:
         self.image_render.image = enlarged(to_uint8(image))
         self.image_variance.image = enlarged(to_uint8(colormap(variance)))
         role = ""
-        if key.split == "pool":
-            role = camera_roles(run, self.state, self.goal)[key.index][1]
+        if key.split in ("pool", "captured"):
+            view = key.index + (run.first_captured if key.split == "captured" else 0)
+            role = camera_roles(run, self.state, self.goal)[view][1]
             scores = self.goal.scores if self.goal is not None else self.state.scores
-            if key.index in scores:
+            if key.split == "pool" and key.index in scores:
                 role += f", score {scores[key.index]:.6g}"
         self.camera_text.content = (f"**{key.label}** ({split.names[key.index]}) {role} · round "
                                     f"{self.state.index}'s model")
