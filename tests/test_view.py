@@ -525,3 +525,15 @@ def test_the_viewer_shows_views_captured_off_the_pool_and_the_searched_landscape
         assert "captured off the pool" in v.camera_list.content
     finally:
         server.stop()
+
+
+def test_the_search_stats_tool_reads_an_off_pool_sweep(off_pool_run, capsys):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("search_stats", ROOT / "tools" / "search_stats.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    assert tool.main([str(off_pool_run.parent.parent)]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| global |")]
+    assert rows[0].split("|")[2].strip() == "2"  # the debug episode's two selection rounds
+    assert any("gopre_search" in line for line in rows)
