@@ -277,3 +277,32 @@ def test_a_selection_context_names_a_bad_pool(ctx_parts):
         SelectionContext(g, pool, [1, 2], taken, torch.ones(3), torch.Generator())
     with pytest.raises(ValueError, match=r"^candidates: the pool is empty$"):
         SelectionContext(g, pool[[]], [], taken, torch.ones(3), torch.Generator())
+
+
+@pytest.mark.parametrize("name,options", [("gopre", {}), ("gopre", {"score": "mc"}), ("gopre", {"score": "trace"}),
+                                          ("gopre", {"goal": "identity"}), ("gopre", {"tau": 1e-3}),
+                                          ("gopre", {"tau": 0.0}), ("fisherrf", {}),
+                                          ("fisherrf", {"hessian": "fisherrf_released"}), ("popgs", {}),
+                                          ("popgs", {"variant": "block"})])
+@pytest.mark.parametrize("taken", [2, 0])
+def test_a_pose_scorer_costs_any_camera_as_select_scores_it_as_a_candidate(ctx_parts, name, options, taken):
+    """What a search over poses minimises is the strategy's own score: on the pool's cameras the
+    cost equals select's score (negated where the strategy maximises), the least cost is select's
+    pick, and a camera off the pool gets a finite cost."""
+    g, pool, taken_cams, probes = ctx_parts
+
+    def ctx():  # the taken views' images play no part in these scores
+        return SelectionContext(g, pool, [10 + i for i in range(len(pool))], taken_cams[list(range(taken))],
+                                torch.ones(3), torch.Generator().manual_seed(0), probes)
+    strategy = make_strategy(name, **options)
+    sel = strategy.select(ctx())
+    scorer = strategy.pose_scorer(ctx())
+    costs = scorer.cost(pool)
+    assert costs.shape == (len(pool),) and costs.dtype == torch.float64
+    expected = scorer.pool_costs(sel.scores)
+    for k, view in enumerate(10 + i for i in range(len(pool))):
+        assert float(costs[k]) == pytest.approx(expected[view], rel=1e-6, abs=1e-9)
+    assert 10 + int(torch.argmin(costs)) == sel.chosen[0]
+    assert scorer.maximizes == (name != "gopre")
+    off_pool = sphere_cameras(2, 32, 32, seed=11)
+    assert torch.isfinite(scorer.cost(off_pool)).all()

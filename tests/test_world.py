@@ -200,11 +200,13 @@ def world_config(**changes):
     return tiny_episode(**{**base, **changes})
 
 
-def test_an_episode_off_the_pool_captures_searched_poses_and_trains_on_them(episode_scene, tmp_path):
+@pytest.mark.parametrize("strategy", ["gopre", "fisherrf"])  # least score / greatest score
+def test_an_episode_off_the_pool_captures_searched_poses_and_trains_on_them(episode_scene, tmp_path, strategy):
     from pipeline.active import run_episode
     from pipeline.active.episode import Episode
     scene = load_scene(episode_scene, width=32)
-    cfg = world_config()
+    cfg = world_config(strategy=strategy)
+    sign = -1.0 if strategy == "fisherrf" else 1.0  # rec.search holds costs: fisherrf's gain negated
     world = GeneratedWorld(32, scene.background)
     checked = []
 
@@ -227,7 +229,8 @@ def test_an_episode_off_the_pool_captures_searched_poses_and_trains_on_them(epis
     space = Episode(scene, cfg).space
     assert space.contains(torch.tensor(result.acquired_poses)).all()
     for rec in result.rounds[:-1]:
-        best_pool = min(rec.scores.values())
+        costs = {view: sign * score for view, score in rec.scores.items()}
+        best_pool = min(costs.values())
         assert len(rec.scores) == rec.candidates and rec.search["best_pool_score"] == best_pool
         assert rec.search["score"] <= rec.search["best_start_score"] and rec.search["evaluations"] <= 30
         evaluated = torch.tensor(rec.search["evaluated"], dtype=torch.float64)  # the landscape the search saw: [E, 4]
@@ -236,7 +239,7 @@ def test_an_episode_off_the_pool_captures_searched_poses_and_trains_on_them(epis
         if rec.search["taken"] == "search":  # a captured view, after the pool's ids
             assert rec.selected[0] >= pool_size and rec.search["score"] < best_pool and len(rec.poses) == 1
         else:  # the pool pick: the best pool score
-            assert rec.selected == [min(rec.scores, key=rec.scores.get)] and rec.poses is None
+            assert rec.selected == [min(costs, key=costs.get)] and rec.poses is None
             assert rec.search["score"] >= best_pool - 1e-9 * abs(best_pool)
     assert [r.poses[0] for r in searched] == result.acquired_poses
     assert "acquired_poses" in result.to_dict()

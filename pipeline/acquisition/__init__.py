@@ -22,6 +22,10 @@ REGISTRY = {
 }
 
 
+# the strategies that score any camera (pose_scorer), so a search over poses can use them
+POSE_SCORING = tuple(name for name, cls in REGISTRY.items() if hasattr(cls, "pose_scorer"))
+
+
 def make_strategy(name: str, **options) -> Strategy:
     """Build a strategy by registry key; unknown names or options fail with a clear error."""
     if name not in REGISTRY:
@@ -32,4 +36,4 @@ def make_strategy(name: str, **options) -> Strategy:
         raise ValueError(f"strategy {name!r}: bad options {sorted(options)} ({err})") from None
 
 
-__all__ = ["REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy"]
+__all__ = ["POSE_SCORING", "REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy"]

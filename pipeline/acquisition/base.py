@@ -69,6 +69,28 @@ class Strategy(Protocol):
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection: ...
 
 
+@dataclass(frozen=True)
+class PoseScorer:
+    """A strategy's score of any camera, as the cost a search over poses minimises.
+
+    ``cost(cameras [B]) -> [B]`` float64, lower is better, equal to the score ``select`` gives the
+    same camera as a candidate on the same context (its first pick), negated for a strategy that
+    picks the highest score (``maximizes``). Strategies that can score a pose off the pool have
+    ``pose_scorer(ctx) -> PoseScorer``."""
+
+    cost: Callable[[Cameras], Tensor]
+    maximizes: bool
+
+    def pool_costs(self, scores: dict[int, float]) -> dict[int, float]:
+        """``Selection.scores`` (the strategy's own sign) as costs."""
+        return {view: -s if self.maximizes else s for view, s in scores.items()}
+
+
+def taken_fisher_sum(ctx: SelectionContext, spec: FisherSpec, like: Tensor) -> Tensor:
+    """H_train [D]: the summed Fisher of the taken views (zeros like ``like`` when none is taken)."""
+    return fisher_vectors(ctx, ctx.taken, spec).sum(0) if len(ctx.taken) else torch.zeros_like(like)
+
+
 def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:
     """Flattened exact diagonal Fisher of each view, [C, D] float64 (C >= 1: callers never ask for
     the Fisher of no view)."""

@@ -11,8 +11,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from pipeline.acquisition.base import (Selection, SelectionContext, greedy_pick, pool_and_train_fishers,
-                                       timed_selection)
+from torch import Tensor
+
+from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, fisher_vectors, greedy_pick,
+                                       pool_and_train_fishers, taken_fisher_sum, timed_selection)
+from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec
 from pipeline.fisher.posterior import POSTERIOR_LAMBDA
 
@@ -29,8 +32,23 @@ class FisherRFStrategy:
     def __post_init__(self) -> None:
         self.spec = FisherSpec(groups=FISHERRF_GROUPS, hessian=self.hessian)
 
+    def information_gain(self, h: Tensor, fishers: Tensor) -> Tensor:
+        """sum_i F_x,i / (H_i + lambda) of each view: h [D], fishers [M, D] -> [M] (the higher the better)."""
+        return (fishers / (h + self.lam)).sum(-1)
+
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         def run(order):
             cands, h = pool_and_train_fishers(ctx, order, self.spec)
-            return greedy_pick(cands, h, lambda h_, f: (f / (h_ + self.lam)).sum(-1), count, True)
+            return greedy_pick(cands, h, self.information_gain, count, True)
         return timed_selection(ctx, run)
+
+    def pose_scorer(self, ctx: SelectionContext) -> PoseScorer:
+        """The information gain of any cameras, negated (a search minimises it); H_train once."""
+        h = None
+
+        def cost(cameras: Cameras) -> Tensor:
+            nonlocal h
+            fishers = fisher_vectors(ctx, cameras, self.spec)  # [B, D]
+            h = taken_fisher_sum(ctx, self.spec, fishers[0]) if h is None else h
+            return -self.information_gain(h, fishers)
+        return PoseScorer(cost, maximizes=True)

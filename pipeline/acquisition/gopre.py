@@ -16,7 +16,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from pipeline.acquisition.base import (Selection, SelectionContext, fisher_vectors, greedy_pick,
+from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, fisher_vectors, greedy_pick,
                                        greedy_pick_sparse, pool_and_train_fishers, sparse_fishers,
                                        sparse_fishers_reusing, summed_fisher, timed_selection)
 from pipeline.cameras import Cameras
@@ -102,19 +102,19 @@ class GoPreStrategy:
             return greedy_pick_sparse(cands, h, scores, count)
         return run
 
-    def pose_scorer(self, ctx: SelectionContext) -> Callable[[Cameras], Tensor]:
-        """The score ``select`` gives a candidate, for any cameras [B] (lower is better) on ctx's
-        model, taken views and probes: what a search over the pose space minimises. The posterior
-        and the goal Hessian are computed once; each call computes its cameras' Fishers."""
+    def pose_scorer(self, ctx: SelectionContext) -> PoseScorer:
+        """The score ``select`` gives a candidate, for any cameras (lower is better) on ctx's model,
+        taken views and probes: what a search over the pose space minimises. The posterior and the
+        goal Hessian are computed once; each call computes its cameras' Fishers."""
         if self.goal == "probes" and (ctx.probes is None or len(ctx.probes) == 0):
             raise ValueError("gopre needs probe poses from the target manifold (ctx.probes)")
         h = fisher_vectors(ctx, ctx.taken, self.spec).sum(0) if len(ctx.taken) else None
         score = self._scorer(fisher_vectors(ctx, ctx.probes, self.spec) if self.goal == "probes" else None)
 
-        def scores(cameras: Cameras) -> Tensor:
+        def cost(cameras: Cameras) -> Tensor:
             fishers = fisher_vectors(ctx, cameras, self.spec)  # [B, D]
             return score(h if h is not None else torch.zeros_like(fishers[0]), fishers)
-        return scores
+        return PoseScorer(cost, maximizes=False)
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         if self.goal == "probes" and (ctx.probes is None or len(ctx.probes) == 0):

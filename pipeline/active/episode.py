@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline.acquisition import SelectionContext, make_strategy
+from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
@@ -119,7 +119,7 @@ class Episode:
         if cfg.world != "dataset":
             if not hasattr(self.strategy, "pose_scorer"):
                 raise ValueError(f"world={cfg.world}: strategy {cfg.strategy!r} cannot score a pose off the pool "
-                                 "(a pose search needs a strategy with pose_scorer: gopre)")
+                                 f"(a pose search needs a strategy that scores any camera: {', '.join(POSE_SCORING)})")
             self.world = make_world(scene, cfg)
             manifold = (resolved_manifold(cfg.protocol.manifold, scene, scene_up(scene, scene.all_cameras()))
                         if cfg.protocol.kind == "goal" else None)
@@ -228,9 +228,10 @@ class Episode:
         the pool pick stands (the pose space extends the pool, it never loses a candidate).
         ``rec.search`` says which; the pool's scores stay in ``rec.scores``. Returns the seconds."""
         start = time.perf_counter()
-        choice = search_next_pose(self.strategy.pose_scorer(ctx), ctx, rec.scores, self.space, self.cfg,
-                                  rec.round)
-        best_pool = min(rec.scores.values())
+        scorer = self.strategy.pose_scorer(ctx)
+        pool_costs = scorer.pool_costs(rec.scores)
+        choice = search_next_pose(scorer, ctx, pool_costs, self.space, self.cfg, rec.round)
+        best_pool = min(pool_costs.values())
         rec.search = {"score": choice.score, "best_start_score": choice.best_start_score,
                       "best_pool_score": best_pool, "evaluations": choice.evaluations,
                       "seconds": choice.seconds, "taken": "pool",

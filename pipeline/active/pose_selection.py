@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from pipeline.acquisition import SelectionContext
+from pipeline.acquisition.base import PoseScorer
 from pipeline.active.config import EpisodeConfig
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold
@@ -116,13 +117,13 @@ class PoseChoice:
     evaluated: list[list[float]]  # every evaluated (azimuth_deg, elevation_deg, radius, score), in order
 
 
-def search_next_pose(scorer, ctx: SelectionContext, pool_scores: dict[int, float], space: LookAtShell,
-                     cfg: EpisodeConfig, round_index: int) -> PoseChoice:
-    """The pose the strategy's score prefers: starts from the best pool candidates' poses and
-    random poses, then CMA-ES; seeded by (episode seed, round)."""
+def search_next_pose(scorer: PoseScorer, ctx: SelectionContext, pool_costs: dict[int, float],
+                     space: LookAtShell, cfg: EpisodeConfig, round_index: int) -> PoseChoice:
+    """The pose of least cost (``scorer``): starts from the poses of the pool candidates of least
+    cost and random poses, then CMA-ES; seeded by (episode seed, round)."""
     options = cfg.search_options()
     seed = cfg.seed * 100_003 + round_index
-    best_ids = sorted(pool_scores, key=lambda i: (pool_scores[i], i))[:options["pool_starts"]]
+    best_ids = sorted(pool_costs, key=lambda i: (pool_costs[i], i))[:options["pool_starts"]]
     position = {view: k for k, view in enumerate(ctx.candidate_ids)}
     starts = []
     if best_ids:
@@ -135,7 +136,7 @@ def search_next_pose(scorer, ctx: SelectionContext, pool_scores: dict[int, float
     if len(starts) == 0:
         starts = space.sample(1, torch.Generator().manual_seed(seed))
     budget = SearchBudget(evaluations=max(options["evaluations"], len(starts)), seconds=options["seconds"])
-    result = search_poses(lambda poses: scorer(space.cameras(poses)), space, starts, budget, seed)
+    result = search_poses(lambda poses: scorer.cost(space.cameras(poses)), space, starts, budget, seed)
     evaluated = torch.cat([result.poses, result.scores[:, None]], 1).tolist()
     return PoseChoice(result.pose.tolist(), space.cameras(result.pose[None]), result.score,
                       result.best_start_score, result.evaluations, round(result.seconds, 3), evaluated)

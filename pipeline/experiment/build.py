@@ -18,7 +18,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.acquisition import make_strategy
+from pipeline.acquisition import POSE_SCORING, make_strategy
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
@@ -177,7 +177,8 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                 _set_dotted(job, key, value)
             job["axes"] = axes
             job["setting"] = ", ".join(f"{k}={v}" for k, v in axes.items())
-            job_world = world_section(method["world"]) if method.get("world") else world
+            job_world = (world_section(method["world"], f"method.{mname}.world") if method.get("world")
+                         else world)
             if job_world is not None:  # part of what the job computes (absent for the pool)
                 job["world"] = copy.deepcopy(job_world)
             job["config_hash"] = config_hash(job)
@@ -235,19 +236,20 @@ def episode_config(job: Job) -> EpisodeConfig:
 WORLD_KEYS = {"kind", "model", "search"}
 
 
-def world_section(data: dict) -> dict | None:
-    """The ``world`` section: None for the dataset's pool, else checked and kept as plain data."""
-    check_keys("world", data, WORLD_KEYS)
+def world_section(data: dict, where: str = "world") -> dict | None:
+    """The ``world`` section (at ``where``): None for the dataset's pool, else checked, as plain data."""
+    check_keys(where, data, WORLD_KEYS)
     if data.get("kind", "dataset") == "dataset":
         if data.get("model") is not None or data.get("search"):
-            raise ConfigError("world: model and search need a capture simulator (world=generated or twin)")
+            raise ConfigError(f"{where}: model and search need a capture simulator (world=generated or twin)")
         return None
     if data["kind"] == "twin":
         model = data.get("model")
         if not (isinstance(model, str) and model.startswith("ply:")):
-            raise ConfigError(f"world.model: world=twin needs the reference splat as ply:PATH, got {model!r}")
+            raise ConfigError(f"{where}.model: world=twin needs the reference splat as ply:PATH, got {model!r}")
         if not Path(model[len("ply:"):]).is_file():
-            raise ConfigError(f"world.model: {model[len('ply:'):]}: no such file")
+            raise ConfigError(f"{where}.model: {model[len('ply:'):]}: no such file (make the scene's twin with "
+                              f"`gopre-data twin SCENE_FOLDER {model[len('ply:'):]}`)")
     return {k: v for k, v in data.items() if v is not None}
 
 
@@ -282,6 +284,7 @@ def validate_job(job: Job) -> None:
         raise ConfigError(f"method.{job.method}: {err}") from None
     if job.world is not None and not hasattr(strategy, "pose_scorer"):
         raise ConfigError(f"method.{job.method}: world={job.world['kind']} searches poses off the pool, which "
-                          f"needs a strategy that scores any camera (gopre); {job.strategy!r} picks from the pool only")
+                          f"needs a strategy that scores any camera ({', '.join(POSE_SCORING)}); {job.strategy!r} "
+                          "picks from the pool only")
     if job.kind == "uncertainty":
         uncertainty_config(job)
