@@ -12,6 +12,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
@@ -211,6 +212,27 @@ def test_demo_tiny_on_ray_with_mlflow_equals_local_and_yields_a_table(base, ray_
     mlflow_report = make_report(ray_dir, tmp_path / "report_mlflow", frame=from_mlflow)
     assert mlflow_report["tables"] == report["tables"]
     assert "LPIPS disabled in the config" in report["tables"]
+
+
+def test_an_episode_off_the_pool_round_trips_through_mlflow(base):
+    """gopre_search's rounds: which ones took a searched pose, their scores and the captured poses
+    come back from MLflow as the records file has them."""
+    out = base / "off_pool_mlflow"
+    summary = run_sweep(composed(["experiment=debug", *TINY, f"output_dir={out}", "executor=local",
+                                  "tracking=mlflow", "method=[gopre_search]", "job.round_images=0",
+                                  "protocol.budget=6", "method.gopre_search.world.search.evaluations=8"]))
+    assert summary.finished == 1
+    columns = ["num_views", "search_taken", "search_score", "search_best_start_score", "search_best_pool_score",
+               "poses"]
+    stored = RecordsFile(out).frame
+    from_mlflow = records_from_mlflow(summary.tracking_uri, "debug")
+    for kind in ("round", "final"):
+        a = stored[stored["kind"] == kind].sort_values("num_views")
+        b = from_mlflow[from_mlflow["kind"] == kind].sort_values("num_views")
+        cols = columns if kind == "round" else ["poses"]
+        pd.testing.assert_frame_equal(a[cols].reset_index(drop=True), b[cols].reset_index(drop=True),
+                                      check_dtype=False)
+    assert set(stored["search_taken"].dropna()) == {"search", "pool"}  # both kinds of round made the trip
 
 
 @pytest.mark.slow

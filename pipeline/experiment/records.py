@@ -172,7 +172,8 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
              "curve_psnr_drop": metrics.get("curve_psnr_drop"),
              "nonfinite_steps": metrics.get("nonfinite_steps")}
     history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
-               for key in ("test_psnr", "test_ssim", "test_ssim_skimage", "per_candidate_ms", "selection_seconds")}
+               for key in ("test_psnr", "test_ssim", "test_ssim_skimage", "per_candidate_ms", "selection_seconds",
+                           *(SEARCH_METRICS if "world.kind" in params else ()))}
     if version < 2:
         history["test_ssim_skimage"], history["test_ssim"] = history["test_ssim"], {}
     picks = list(history["per_candidate_ms"].values())
@@ -180,6 +181,24 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
     sel = list(history["selection_seconds"].values())
     final["selection_seconds"] = sum(sel) / len(sel) if sel else None
     rounds = [{**base, "kind": "round", "num_views": step, "psnr": value,
-               "ssim": history["test_ssim"].get(step), "ssim_skimage": history["test_ssim_skimage"].get(step)}
+               "ssim": history["test_ssim"].get(step), "ssim_skimage": history["test_ssim_skimage"].get(step),
+               **_search_columns(history, step)}
               for step, value in sorted(history["test_psnr"].items())]
+    if "acquired_poses" in tags:  # a search round that took its pose took the next captured one
+        poses = iter(json.loads(tags["acquired_poses"]))
+        final["poses"] = tags["acquired_poses"]
+        for row in rounds:  # as episode_rows writes them: null for a round whose pool pick stood
+            if "search_taken" in row:
+                row["poses"] = json.dumps([next(poses)] if row["search_taken"] == "search" else None)
     return rounds + [final]
+
+
+# the round metrics of a search off the pool (tracking.round_metrics logs them) and their record columns
+SEARCH_METRICS = ("search_score", "search_best_start_score", "search_best_pool_score", "search_taken")
+
+
+def _search_columns(history: dict, step: int) -> dict:
+    if step not in history.get("search_taken", {}):
+        return {}
+    return {"search_taken": "search" if history["search_taken"][step] else "pool",
+            **{key: history[key].get(step) for key in SEARCH_METRICS if key != "search_taken"}}

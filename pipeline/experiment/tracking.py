@@ -10,6 +10,7 @@ message (``log_round``, while the job runs) and is completed by ``log_job`` when
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import tempfile
@@ -51,6 +52,10 @@ def round_metrics(r: RoundRecord) -> list[tuple[str, float, int]]:
         out += [("per_candidate_ms", r.per_candidate_ms, step),
                 ("selection_seconds", r.selection_seconds, step),
                 ("selection_cpu_seconds", r.selection_cpu_seconds, step)]
+    if r.search:  # a round off the pool (records.SEARCH_METRICS reads these back)
+        out += [(f"search_{key}", r.search[key], step) for key in ("score", "best_start_score",
+                                                                   "best_pool_score", "evaluations", "seconds")]
+        out.append(("search_taken", 1.0 if r.search["taken"] == "search" else 0.0, step))
     return out
 
 
@@ -203,6 +208,9 @@ class MlflowTracker:
             tags["degraded"] = str(bool(final.degraded)).lower()  # > 3 dB below its last round (see records)
             tags["lpips_status"] = str(final.lpips_status)[:5000]  # why LPIPS is (un)available
             tags["metrics_version"] = str(final.metrics_version)  # what final_ssim means (active.results)
+        poses = json.dumps(outcome.episode.acquired_poses) if outcome.episode is not None else "null"
+        if poses not in ("null", "[]") and len(poses) <= 5000:  # the views captured off the pool (a tag's limit;
+            tags["acquired_poses"] = poses                          # result.json, an artifact, has them all)
         if job.index is not None:  # the config's job order, which the report keeps
             tags["job_index"] = str(job.index)
         for key, value in tags.items():
@@ -229,8 +237,6 @@ class MlflowTracker:
         return out
 
     def _log_artifacts(self, run_id: str, job: Job, outcome: JobOutcome) -> None:
-        import json
-
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
             (folder / "config.json").write_text(json.dumps(job.to_dict(), indent=1))
