@@ -527,13 +527,14 @@ def test_the_viewer_shows_views_captured_off_the_pool_and_the_searched_landscape
         server.stop()
 
 
-def test_the_search_stats_tool_reads_an_off_pool_sweep(off_pool_run, capsys):
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("search_stats", ROOT / "tools" / "search_stats.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    assert tool.main([str(off_pool_run.parent.parent)]) == 0
-    out = capsys.readouterr().out
-    rows = [line for line in out.splitlines() if line.startswith("| global |")]
-    assert rows[0].split("|")[2].strip() == "2"  # the debug episode's two selection rounds
-    assert any("gopre_search" in line for line in rows)
+def test_the_report_of_a_real_off_pool_sweep_has_its_search_section(off_pool_run, tmp_path):
+    from pipeline.report.report import make_report
+    sweep = off_pool_run.parent.parent
+    report = make_report(sweep, tmp_path / "report")
+    text = (tmp_path / "report" / "search.md").read_text()
+    line = next(r for r in text.splitlines() if r.startswith("| generated |") and "gopre_search" in r)
+    assert line.split("|")[5].strip() == "2"  # the debug episode's two selection rounds
+    assert "search_landscape_0.png" in report["figures"]
+    result = json.loads((off_pool_run / "artifacts" / "result.json").read_text())
+    drawn = report["figures"]["search_landscape_0.png"]
+    assert len(drawn) == sum(1 for r in result["rounds"] if r.get("search"))

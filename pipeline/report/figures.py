@@ -144,3 +144,36 @@ def qualitative_grid(renders: dict[str, list[Path]], path: Path) -> dict[str, li
     fig.tight_layout()
     save_figure(fig, path)
     return {"columns": cols, "rows": [Path(v).stem for v in views]}
+
+
+def search_landscape(rounds: list, path: Path, title: str) -> dict[int, tuple[list, list]]:
+    """One panel per searched round (``report.search.RoundLandscape``): every pose the search
+    evaluated at (azimuth, elevation), coloured by its cost relative to the pool's best candidate
+    (blue: better than any pool view); the star is the pose found (filled: captured, hollow: the
+    pool pick stood). Returns round -> (relative costs, taken) drawn."""
+    cols = min(4, len(rounds))
+    rows = -(-len(rounds) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.3 * cols + 1.0, 3.0 * rows + 0.4), squeeze=False,
+                             sharex=True, sharey=True, layout="constrained")  # one frame: the search moves
+    rel = [r.relative_costs() * 100 for r in rounds]
+    every = np.concatenate(rel)  # two slopes: the few points below the pool's best stay visible
+    norm = matplotlib.colors.TwoSlopeNorm(vcenter=0.0, vmin=min(float(every.min()), -1e-3),
+                                          vmax=max(float(np.percentile(every, 90)), 1e-3))
+    drawn = {}
+    for ax, r, values in zip(axes.flat, rounds, rel):
+        points = ax.scatter(r.poses[:, 0], r.poses[:, 1], c=values, cmap="coolwarm", norm=norm,
+                            s=14, edgecolors="none")
+        ax.scatter([r.best[0]], [r.best[1]], marker="*", s=160, linewidths=1.2, edgecolors="black",
+                   facecolors="black" if r.taken == "search" else "none")
+        ax.set_title(f"round {r.round}: {'captured' if r.taken == 'search' else 'pool pick stood'}", fontsize=8)
+        ax.set_xlabel("azimuth (deg)", fontsize=7)
+        ax.set_ylabel("elevation (deg)", fontsize=7)
+        ax.tick_params(labelsize=6)
+        drawn[r.round] = (values.tolist(), r.taken)
+    for ax in list(axes.flat)[len(rounds):]:
+        ax.axis("off")
+    bar = fig.colorbar(points, ax=axes, shrink=0.8)
+    bar.set_label("cost vs the pool's best (%)", fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    save_figure(fig, path)
+    return drawn

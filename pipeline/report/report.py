@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.report import figures
+from pipeline.report import figures, search
 from pipeline.report.stats import paired_comparisons, with_curve_area
 from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
                                     to_latex, to_markdown)
@@ -248,6 +248,27 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
     return made
 
 
+def search_section(frame: pd.DataFrame, sweep_dir: Path | None, out: Path, made: dict) -> list[str]:
+    """Beyond the pool: how the searches went, what they cost, the landscapes they saw (also in
+    ``search.md``); nothing when no method searched. Adds the landscape figures to ``made``."""
+    if not search.searched_methods(frame):
+        return []
+    lines = ["## Beyond the pool: the pose searches", "",
+             "A searched pose is captured only when its cost (the strategy's own score of the camera, "
+             "a gain negated) is below the pool's best candidate's; otherwise the pool pick stands.", "",
+             search.search_table(frame), "Selection time per round (the search included):", "",
+             search.selection_time_table(frame)]
+    for k, (label, path) in enumerate(search.landscape_jobs(frame, sweep_dir).items() if sweep_dir else []):
+        rounds = search.read_landscapes(path)
+        if rounds:
+            name = f"search_landscape_{k}.png"
+            made[name] = figures.search_landscape(rounds, out / "figures" / name, f"score landscape: {label}")
+            lines.append(f"Landscape {k}: {label} (`figures/{name}`).")
+    lines.append("")
+    (out / "search.md").write_text("\n".join(lines) + "\n")
+    return lines
+
+
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
     final = frame[frame["kind"] == "final"]
     cols = [c for c in ("sweep", "method", "dataset", "scene", "seed", "setting", "config_hash", "run_id",
@@ -272,7 +293,7 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     title = str(frame["sweep"].iloc[0])
-    tables = episode_tables(frame, title, reference) + ause_table(frame, title)
+    tables = episode_tables(frame, title, reference) + ause_table(frame, title) + search.twin_tables(frame, title)
     markdown = "".join(render_markdown(t) + "\n" for t in tables)
     (out / "table.md").write_text(markdown)
     (out / "table.tex").write_text("\n".join(render_latex(t) for t in tables))
@@ -281,7 +302,7 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     runs.to_csv(out / "runs.csv", index=False)
     failed = runs[runs["status"] != "FINISHED"]
     seeds = sorted(set(runs["seed"]))
-    lines = [f"# Report: {title}", "", markdown, "## Figures", ""]
+    lines = [f"# Report: {title}", "", markdown, *search_section(frame, sweep_dir, out, made), "## Figures", ""]
     if "psnr_vs_views.png" in made:
         lines += ["PSNR vs views averages the curve's test views (a fixed subset, "
                   "`splat.curve_test_views`); the tables' final PSNR uses every test view, so a curve's "

@@ -1,0 +1,170 @@
+"""Beyond the pool (issue 28): how a sweep's pose searches went, read from its records.
+
+A method searched off the pool when its round rows carry ``search_taken`` (``search``: the searched
+pose beat the pool's best candidate and was captured; ``pool``: the pool pick stood). Costs are the
+strategy's score as a search minimises it (``PoseScorer``: GO-PRE's score, FisherRF's and POp-GS's
+gains negated). Three things come out of a sweep:
+
+- per method and setting, how often the search won, by how much (relative to the pool's best
+  cost) and what it cost (selection time per round beside every other method's);
+- each searched method against its pool twin (the method of the same strategy that never
+  searched, e.g. ``fisherrf_search`` against ``fisherrf``), paired over seeds;
+- the score landscape each round's search saw (``rec.search.evaluated``, read from the job's
+  ``result.json``): azimuth x elevation coloured by cost, the starts, the pose found, the pool's best.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.report.stats import paired_comparisons
+from pipeline.report.tables import PairedTable
+
+
+def search_rounds(frame: pd.DataFrame) -> pd.DataFrame:
+    """The finished round rows of episodes that searched off the pool (empty when none did)."""
+    if "search_taken" not in frame:
+        return frame.iloc[:0]
+    rounds = frame[(frame["kind"] == "round") & frame["search_taken"].notna()]
+    return rounds[rounds.get("status", "FINISHED") == "FINISHED"] if "status" in rounds else rounds
+
+
+def searched_methods(frame: pd.DataFrame) -> list[str]:
+    return list(dict.fromkeys(search_rounds(frame)["method"]))
+
+
+def _setting(frame: pd.DataFrame) -> pd.Series:
+    return frame["setting"].fillna("") if "setting" in frame else pd.Series("", index=frame.index)
+
+
+def search_table(frame: pd.DataFrame) -> str:
+    """Markdown: per scene, setting and searched method, the rounds, the share whose searched pose
+    was captured and the mean relative cost gain over the pool's best in those rounds."""
+    rounds = search_rounds(frame)
+    rounds = rounds.assign(setting=_setting(rounds))
+    lines = ["| scene | setting | method | episodes | rounds | searched pose captured | "
+             "cost below the pool's best (captured rounds, mean) |", "|---|---|---|---|---|---|---|"]
+    for (scene, setting, method), part in rounds.groupby(["scene", "setting", "method"], sort=False):
+        taken = part[part["search_taken"] == "search"]
+        gain = ((taken["search_best_pool_score"] - taken["search_score"])
+                / taken["search_best_pool_score"].abs()).mean()
+        share = f"{len(taken)} ({len(taken) / len(part):.0%})"
+        lines.append(f"| {scene} | {setting} | {method} | {part['config_hash'].nunique()} | {len(part)} | "
+                     f"{share} | {'—' if taken.empty else f'{gain:.2%}'} |")
+    return "\n".join(lines) + "\n"
+
+
+def selection_time_table(frame: pd.DataFrame) -> str:
+    """Markdown: selection time per round of every method (the search's included), per scene and
+    setting, mean over episodes: the cost a win off the pool must be stated against."""
+    final = frame[(frame["kind"] == "final") & (frame.get("job_kind", "episode") == "episode")]
+    if "status" in final:
+        final = final[final["status"] == "FINISHED"]
+    final = final.assign(setting=_setting(final))
+    lines = ["| scene | setting | method | selection CPU s / round | selection wall s / round |",
+             "|---|---|---|---|---|"]
+    for (scene, setting, method), part in final.groupby(["scene", "setting", "method"], sort=False):
+        cpu = pd.to_numeric(part.get("selection_cpu_seconds"), errors="coerce").mean()
+        wall = pd.to_numeric(part.get("selection_seconds"), errors="coerce").mean()
+        lines.append(f"| {scene} | {setting} | {method} | {_num(cpu)} | {_num(wall)} |")
+    return "\n".join(lines) + "\n"
+
+
+def _num(value: float) -> str:
+    return "—" if value is None or value != value else f"{value:.2f}"
+
+
+def pool_twin(frame: pd.DataFrame, method: str) -> str | None:
+    """The method of the same strategy that never searched, when there is exactly one."""
+    final = frame[frame["kind"] == "final"]
+    strategy = set(final.loc[final["method"] == method, "strategy"])
+    searched = set(searched_methods(frame))
+    twins = [m for m in dict.fromkeys(final["method"])
+             if m not in searched and set(final.loc[final["method"] == m, "strategy"]) == strategy]
+    return twins[0] if len(twins) == 1 else None
+
+
+def twin_tables(frame: pd.DataFrame, title: str) -> list[PairedTable]:
+    """Per setting and pool twin, the searched methods of its strategy against it (final PSNR and
+    the curve area), paired over scenes and seeds."""
+    from pipeline.report.stats import with_curve_area
+    final = frame[(frame["kind"] == "final") & (frame.get("job_kind", "episode") == "episode")]
+    if "status" in final:
+        final = final[final["status"] == "FINISHED"]
+    rounds = frame[(frame["kind"] == "round") & frame["config_hash"].isin(final["config_hash"])]
+    final = with_curve_area(final, rounds).assign(setting=lambda f: _setting(f))
+    groups: dict[str, list[str]] = {}
+    for method in searched_methods(frame):
+        twin = pool_twin(frame, method)
+        if twin is not None:
+            groups.setdefault(twin, []).append(method)
+    out = []
+    for setting in dict.fromkeys(final["setting"]):
+        part = final[final["setting"] == setting]
+        for twin, methods in groups.items():
+            rows: dict[str, dict] = {}
+            for metric in ("psnr", "psnr_auc"):
+                sub = part[part["method"].isin([twin, *methods])]
+                if twin not in set(sub["method"]):
+                    continue
+                for c in paired_comparisons(sub, twin, metric, methods):
+                    rows.setdefault(c.method, {})[metric] = c
+            if rows:
+                label = f", {setting}" if setting else ""
+                out.append(PairedTable(f"{title}{label}: searched off the pool against the pool ({twin})",
+                                       twin, ["psnr", "psnr_auc"], rows))
+    return out
+
+
+@dataclass
+class RoundLandscape:
+    """What one round's search evaluated: poses [E, 3] (azimuth, elevation in degrees, radius),
+    their costs [E], the pose of least cost [3], the pool's best cost and which pick was taken."""
+
+    round: int
+    poses: np.ndarray
+    costs: np.ndarray
+    best: np.ndarray
+    best_pool_cost: float
+    taken: str
+
+    def relative_costs(self) -> np.ndarray:
+        """(cost - the pool's best) / |the pool's best| [E]: below zero beats every pool candidate."""
+        return (self.costs - self.best_pool_cost) / abs(self.best_pool_cost)
+
+
+def landscapes(result: dict) -> list[RoundLandscape]:
+    """The rounds of a job's ``result.json`` that searched, as landscapes."""
+    out = []
+    for rec in result.get("rounds", []):
+        search = rec.get("search")
+        if not search or not search.get("evaluated"):
+            continue
+        evaluated = np.asarray(search["evaluated"], dtype=float)  # [E, 4]
+        best = evaluated[int(np.argmin(evaluated[:, 3]))]
+        out.append(RoundLandscape(int(rec["round"]), evaluated[:, :3], evaluated[:, 3], best[:3],
+                                  float(search["best_pool_score"]), str(search["taken"])))
+    return out
+
+
+def landscape_jobs(frame: pd.DataFrame, sweep_dir: Path) -> dict[str, Path]:
+    """For each scene, setting and searched method: its first seed's ``result.json`` (label -> path)."""
+    rounds = search_rounds(frame)
+    rounds = rounds.assign(setting=_setting(rounds))
+    out = {}
+    for (scene, setting, method), part in rounds.groupby(["scene", "setting", "method"], sort=False):
+        first = part.sort_values("seed").iloc[0]
+        path = sweep_dir / "jobs" / str(first["config_hash"]) / "artifacts" / "result.json"
+        if path.exists():
+            label = ", ".join(x for x in (method, scene, setting, f"seed {first['seed']}") if x)
+            out[label] = path
+    return out
+
+
+def read_landscapes(path: Path) -> list[RoundLandscape]:
+    return landscapes(json.loads(Path(path).read_text()))
