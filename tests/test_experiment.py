@@ -233,6 +233,7 @@ def test_an_episode_off_the_pool_round_trips_through_mlflow(base):
         pd.testing.assert_frame_equal(a[cols].reset_index(drop=True), b[cols].reset_index(drop=True),
                                       check_dtype=False)
     assert set(stored["search_taken"].dropna()) == {"search", "pool"}  # both kinds of round made the trip
+    assert set(stored["world"]) == set(from_mlflow["world"]) == {"generated"}  # where its views came from
 
 
 @pytest.mark.slow

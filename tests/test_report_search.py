@@ -19,6 +19,7 @@ def row(method, strategy, seed, kind, setting="protocol.kind=global", **extra):
 
 def searched_round(method, strategy, seed, views, taken, score, pool_best, **extra):
     return row(method, strategy, seed, "round", num_views=views, psnr=10.0 + views, search_taken=taken,
+               world="twin" if method == "fisherrf_search" else "generated",
                search_score=score, search_best_pool_score=pool_best, search_best_start_score=pool_best, **extra)
 
 
@@ -113,5 +114,6 @@ def test_the_report_of_a_sweep_that_searched_has_its_section(frame, tmp_path):
     report = make_report(sweep, tmp_path / "out")
     text = (tmp_path / "out" / "report.md").read_text()
     assert "## Beyond the pool" in text and (tmp_path / "out" / "search.md").exists()
+    assert search.WORLD_NOTES["twin"] in text and search.WORLD_NOTES["generated"] in text
     assert "search_landscape_0.png" in report["figures"]
     assert "searched off the pool against the pool (fisherrf)" in report["tables"]

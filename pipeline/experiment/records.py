@@ -38,7 +38,8 @@ def identity(job: Job, outcome: JobOutcome, run_id: str | None) -> dict:
             "status": outcome.status, "job_kind": job.kind, "dataset": job.dataset,
             "scene": job.scene, "method": job.method, "strategy": job.strategy,
             "protocol": job.protocol["kind"], "seed": job.seed, "setting": job.setting,
-            "axes": json.dumps(job.axes, sort_keys=True), "code_version": job.code_version}
+            "axes": json.dumps(job.axes, sort_keys=True), "code_version": job.code_version,
+            "world": job.world["kind"] if job.world else "dataset"}  # where a view off the pool comes from
 
 
 def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dict]:
@@ -160,7 +161,7 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "scene": tags.get("scene"), "method": tags.get("method"), "strategy": tags.get("strategy"),
             "protocol": tags.get("protocol"), "seed": int(tags.get("seed", 0)),
             "setting": tags.get("setting", ""), "axes": params.get("axes", "{}"),
-            "code_version": tags.get("code_version"),
+            "code_version": tags.get("code_version"), "world": params.get("world.kind", "dataset"),
             "job_index": int(tags["job_index"]) if "job_index" in tags else None}
     version = int(tags.get("metrics_version", 1))  # version 1: final_ssim was scikit-image's
     ssim, ssim_skimage = ((metrics.get("final_ssim"), metrics.get("final_ssim_skimage")) if version >= 2

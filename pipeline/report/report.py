@@ -255,7 +255,8 @@ def search_section(frame: pd.DataFrame, sweep_dir: Path | None, out: Path, made:
         return []
     lines = ["## Beyond the pool: the pose searches", "",
              "A searched pose is captured only when its cost (the strategy's own score of the camera, "
-             "a gain negated) is below the pool's best candidate's; otherwise the pool pick stands.", "",
+             "a gain negated) is below the pool's best candidate's; otherwise the pool pick stands.",
+             *search.world_notes(frame), "",
              search.search_table(frame), "Selection time per round (the search included):", "",
              search.selection_time_table(frame)]
     for k, (label, path) in enumerate(search.landscape_jobs(frame, sweep_dir).items() if sweep_dir else []):

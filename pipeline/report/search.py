@@ -34,6 +34,20 @@ def search_rounds(frame: pd.DataFrame) -> pd.DataFrame:
     return rounds[rounds.get("status", "FINISHED") == "FINISHED"] if "status" in rounds else rounds
 
 
+WORLD_NOTES = {
+    "generated": "Views off the pool are the generated scene's exact images (its analytic ray caster).",
+    "twin": "Views off the pool are renders of the scene's digital twin (a splat trained on all of its "
+            "training views), not photographs; every PSNR is on the dataset's real held-out test views.",
+}
+
+
+def world_notes(frame: pd.DataFrame) -> list[str]:
+    """What a view captured off the pool is, for each capture simulator the searched methods used."""
+    rounds = search_rounds(frame)
+    worlds = dict.fromkeys(rounds["world"].dropna()) if "world" in rounds else {}
+    return [WORLD_NOTES[w] for w in worlds if w in WORLD_NOTES]
+
+
 def searched_methods(frame: pd.DataFrame) -> list[str]:
     return list(dict.fromkeys(search_rounds(frame)["method"]))
 
