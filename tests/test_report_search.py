@@ -78,6 +78,7 @@ def test_each_searched_method_is_paired_with_its_pool_twin(frame):
     assert by_twin["gopre"].rows["gopre_search"]["psnr"].mean_difference == pytest.approx(0.5)
     assert by_twin["fisherrf"].rows["fisherrf_search"]["psnr"].mean_difference == pytest.approx(-1.0)
     assert by_twin["fisherrf"].rows["fisherrf_search"]["psnr"].n == 5
+    assert {t.reference for t in search.twin_tables(frame, "fixture", skip="gopre")} == {"fisherrf"}
 
 
 def test_no_twin_when_two_pool_methods_share_the_strategy(frame):

@@ -103,9 +103,10 @@ def pool_twin(frame: pd.DataFrame, method: str) -> str | None:
     return twins[0] if len(twins) == 1 else None
 
 
-def twin_tables(frame: pd.DataFrame, title: str) -> list[PairedTable]:
+def twin_tables(frame: pd.DataFrame, title: str, skip: str | None = None) -> list[PairedTable]:
     """Per setting and pool twin, the searched methods of its strategy against it (final PSNR and
-    the curve area), paired over scenes and seeds."""
+    the curve area), paired over scenes and seeds; none against ``skip`` (the report's own
+    reference, whose paired tables already have those rows)."""
     from pipeline.report.stats import with_curve_area
     final = frame[(frame["kind"] == "final") & (frame.get("job_kind", "episode") == "episode")]
     if "status" in final:
@@ -115,7 +116,7 @@ def twin_tables(frame: pd.DataFrame, title: str) -> list[PairedTable]:
     groups: dict[str, list[str]] = {}
     for method in searched_methods(frame):
         twin = pool_twin(frame, method)
-        if twin is not None:
+        if twin is not None and twin != skip:
             groups.setdefault(twin, []).append(method)
     out = []
     for setting in dict.fromkeys(final["setting"]):
