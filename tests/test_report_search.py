@@ -56,10 +56,14 @@ def cells(markdown, method):
 def test_the_search_table_counts_captured_rounds_and_the_gain_over_the_pool(frame):
     table = search.search_table(frame)
     gopre = cells(table, "gopre_search")
-    assert gopre[3:] == ["5", "10", "5 (50%)", "2.00%"]  # episodes, rounds, captured, (100 - 98) / 100
+    assert gopre[3:] == ["5", "10", "5 (50%)", "2.00%", "0"]  # episodes, rounds, captured, (100 - 98) / 100
     fisher = cells(table, "fisherrf_search")
-    assert fisher[3:] == ["5", "10", "10 (100%)", "10.00%"]  # a negated gain: |-50| in the denominator
+    assert fisher[3:] == ["5", "10", "10 (100%)", "10.00%", "0"]  # a negated gain: |-50| in the denominator
     assert "| gopre |" not in table  # only methods that searched
+
+    control = pd.DataFrame([searched_round("gopre_pool_captured", "gopre", seed, views, "pool_captured", None, None)
+                            for seed in range(2) for views in (2, 3)])
+    assert cells(search.search_table(control), "gopre_pool_captured")[3:] == ["2", "4", "0 (0%)", "—", "4"]
 
 
 def test_selection_time_is_listed_for_every_method(frame):

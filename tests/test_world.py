@@ -311,3 +311,31 @@ def test_gopre_data_twin_writes_a_twin_that_world_twin_renders(episode_scene, tm
     shot = TwinWorld(ply.load(out), scene.background).capture(scene.split("train").cameras[[2]])[0]
     assert -10 * math.log10(float((shot - scene.split("train").images.stack([2])[0]).square().mean())) > 15
     assert main(["twin", str(episode_scene), str(out), "--width", "4"]) == 1
+
+
+def test_no_search_is_the_pool_episode_and_captured_pool_picks_are_the_simulators_images(episode_scene):
+    """evaluations 0: the pool episode exactly; capture_pool_picks: the same pool picks' cameras,
+    their images rendered by the world (the control for a simulator's images)."""
+    from pipeline.active import run_episode
+    scene = load_scene(episode_scene, width=32)
+    plain = run_episode(scene, world_config(world="dataset", search={}))
+    unsearched = run_episode(scene, world_config(search={"evaluations": 0}))
+    assert unsearched.selected == plain.selected and unsearched.final.psnr == plain.final.psnr
+    assert all(r.search["taken"] == "pool" and r.search["evaluations"] == 0 for r in unsearched.rounds[:-1])
+    world = GeneratedWorld(32, scene.background)
+    pool_cameras = scene.split("train").cameras
+    checked = []
+
+    def on_selection(ep, rec):
+        assert rec.search["taken"] == "pool_captured" and ep.acquired.is_acquired(rec.selected[0])
+        pool_pick = min(rec.scores, key=rec.scores.get)  # gopre: the least score
+        camera = ep.taken_cameras()[[ep.taken.index(rec.selected[0])]]
+        assert torch.equal(camera.viewmats, pool_cameras[[pool_pick]].viewmats)
+        assert torch.equal(ep.taken_images()[ep.taken.index(rec.selected[0])], world.capture(camera)[0])
+        checked.append(pool_pick)
+    captured = run_episode(scene, world_config(search={"evaluations": 0, "capture_pool_picks": True}),
+                           on_selection=on_selection)
+    assert len(checked) == 2 and len(captured.acquired_poses) == 2
+    assert checked[0] == plain.selected[0]  # the first pick is made on the same model
+    with pytest.raises(ValueError, match="capture_pool_picks must be true or false"):
+        world_config(search={"capture_pool_picks": "yes"})

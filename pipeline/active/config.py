@@ -22,7 +22,10 @@ POLICIES = ("reset_opacity", "reload", "continue")
 # where a view's image comes from: the dataset's pool (every strategy), or a capture simulator that
 # renders any pose (pipeline.world): the pick is then a pose searched in the pose space
 WORLDS = ("dataset", "generated", "twin")
-SEARCH_KEYS = {"evaluations": 60, "pool_starts": 3, "random_starts": 3, "seconds": None}
+# evaluations 0: no search (the pool pick); capture_pool_picks: a pool pick's image is the simulator's
+# render of its camera, not the dataset's photo (with evaluations 0, the control for a simulator's images)
+SEARCH_KEYS = {"evaluations": 60, "pool_starts": 3, "random_starts": 3, "seconds": None,
+               "capture_pool_picks": False}
 
 
 @dataclass(frozen=True)
@@ -74,13 +77,16 @@ class EpisodeConfig:
         if self.world != "dataset" and self.views_per_round != 1:
             raise ValueError(f"views_per_round must be 1 with world={self.world} (one searched pose per round)")
         options = self.search_options()
-        if not (isinstance(options["evaluations"], int) and options["evaluations"] >= 1):
-            raise ValueError(f"search.evaluations must be an integer >= 1, got {options['evaluations']!r}")
+        if not (isinstance(options["evaluations"], int) and options["evaluations"] >= 0):
+            raise ValueError(f"search.evaluations must be an integer >= 0 (0: no search), "
+                             f"got {options['evaluations']!r}")
         for key in ("pool_starts", "random_starts"):
             if not (isinstance(options[key], int) and options[key] >= 0):
                 raise ValueError(f"search.{key} must be an integer >= 0, got {options[key]!r}")
-        if options["pool_starts"] + options["random_starts"] < 1:
+        if options["evaluations"] and options["pool_starts"] + options["random_starts"] < 1:
             raise ValueError("search: needs at least one start (pool_starts + random_starts >= 1)")
+        if not isinstance(options["capture_pool_picks"], bool):
+            raise ValueError(f"search.capture_pool_picks must be true or false, got {options['capture_pool_picks']!r}")
 
     def search_options(self) -> dict:
         """The pose search's options, defaults filled in."""

@@ -25,6 +25,7 @@ from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
+from pipeline.world import pose_coordinates
 from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
 from pipeline.cameras import Cameras
@@ -226,8 +227,21 @@ class Episode:
         simulator and replaces the pool pick in ``rec.selected`` when it scores better than the
         pool's best candidate (whose exact camera need not lie on the pose space's shell); else
         the pool pick stands (the pose space extends the pool, it never loses a candidate).
-        ``rec.search`` says which; the pool's scores stay in ``rec.scores``. Returns the seconds."""
+        ``rec.search`` says which (``taken``: search | pool | pool_captured, the last when the
+        pool pick's image is the simulator's, ``search.capture_pool_picks``); the pool's scores
+        stay in ``rec.scores``. With ``search.evaluations`` 0 nothing is searched. Returns the seconds."""
         start = time.perf_counter()
+        options = self.cfg.search_options()
+        if options["evaluations"] == 0:
+            rec.search = {"score": None, "best_start_score": None, "best_pool_score": None, "evaluations": 0,
+                          "seconds": 0.0, "taken": "pool", "evaluated": []}
+        else:
+            self._search(ctx, rec)
+        if rec.search["taken"] == "pool" and options["capture_pool_picks"]:
+            self._capture_pool_pick(rec)
+        return time.perf_counter() - start
+
+    def _search(self, ctx: SelectionContext, rec: RoundRecord) -> None:
         scorer = self.strategy.pose_scorer(ctx)
         pool_costs = scorer.pool_costs(rec.scores)
         choice = search_next_pose(scorer, ctx, pool_costs, self.space, self.cfg, rec.round)
@@ -241,7 +255,18 @@ class Episode:
             rec.selected = [self.acquired.add(choice.pose, choice.camera, image)]
             rec.poses = [list(choice.pose)]
             rec.search["taken"] = "search"
-        return time.perf_counter() - start
+
+    def _capture_pool_pick(self, rec: RoundRecord) -> None:
+        """The pool pick's camera, its image rendered by the simulator (its pose recorded as the
+        pose space's coordinates of the camera, which need not lie on its shell)."""
+        camera = self.pool.cameras[rec.selected]
+        az, el, r = pose_coordinates(camera, torch.tensor(self.space.centre), torch.tensor(self.space.up),
+                                     self.space.reference)
+        pose = [float(az[0]), float(el[0]), float(r[0])]
+        image = self.world.capture(camera).to(self.device)
+        rec.selected = [self.acquired.add(pose, camera, image)]
+        rec.poses = [pose]
+        rec.search["taken"] = "pool_captured"
 
     def after_selection(self) -> None:
         policy = self.cfg.post_selection

@@ -190,16 +190,19 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
         final["poses"] = tags["acquired_poses"]
         for row in rounds:  # as episode_rows writes them: null for a round whose pool pick stood
             if "search_taken" in row:
-                row["poses"] = json.dumps([next(poses)] if row["search_taken"] == "search" else None)
+                row["poses"] = json.dumps([next(poses)] if row["search_taken"] != "pool" else None)
     return rounds + [final]
 
 
-# the round metrics of a search off the pool (tracking.round_metrics logs them) and their record columns
+# the round metrics of a search off the pool (tracking.round_metrics logs them) and their record columns;
+# search_taken as a metric: which pick a round took (a captured view has a pose: search, pool_captured)
 SEARCH_METRICS = ("search_score", "search_best_start_score", "search_best_pool_score", "search_taken")
+SEARCH_TAKEN_CODES = {"pool": 0.0, "search": 1.0, "pool_captured": 2.0}
 
 
 def _search_columns(history: dict, step: int) -> dict:
     if step not in history.get("search_taken", {}):
         return {}
-    return {"search_taken": "search" if history["search_taken"][step] else "pool",
+    taken = {code: name for name, code in SEARCH_TAKEN_CODES.items()}
+    return {"search_taken": taken[history["search_taken"][step]],
             **{key: history[key].get(step) for key in SEARCH_METRICS if key != "search_taken"}}

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from pipeline.active.results import RoundRecord
+from pipeline.experiment.records import SEARCH_TAKEN_CODES
 from pipeline.experiment.console import console
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
@@ -55,7 +56,7 @@ def round_metrics(r: RoundRecord) -> list[tuple[str, float, int]]:
     if r.search:  # a round off the pool (records.SEARCH_METRICS reads these back)
         out += [(f"search_{key}", r.search[key], step) for key in ("score", "best_start_score",
                                                                    "best_pool_score", "evaluations", "seconds")]
-        out.append(("search_taken", 1.0 if r.search["taken"] == "search" else 0.0, step))
+        out.append(("search_taken", SEARCH_TAKEN_CODES[r.search["taken"]], step))
     return out
 
 

@@ -1,7 +1,8 @@
 """Beyond the pool (issue 28): how a sweep's pose searches went, read from its records.
 
 A method searched off the pool when its round rows carry ``search_taken`` (``search``: the searched
-pose beat the pool's best candidate and was captured; ``pool``: the pool pick stood). Costs are the
+pose beat the pool's best candidate and was captured; ``pool``: the pool pick stood;
+``pool_captured``: the pool pick, its image the simulator's, the control). Costs are the
 strategy's score as a search minimises it (``PoseScorer``: GO-PRE's score, FisherRF's and POp-GS's
 gains negated). Three things come out of a sweep:
 
@@ -62,14 +63,16 @@ def search_table(frame: pd.DataFrame) -> str:
     rounds = search_rounds(frame)
     rounds = rounds.assign(setting=_setting(rounds))
     lines = ["| scene | setting | method | episodes | rounds | searched pose captured | "
-             "cost below the pool's best (captured rounds, mean) |", "|---|---|---|---|---|---|---|"]
+             "cost below the pool's best (captured rounds, mean) | pool pick rendered by the simulator |",
+             "|---|---|---|---|---|---|---|---|"]
     for (scene, setting, method), part in rounds.groupby(["scene", "setting", "method"], sort=False):
         taken = part[part["search_taken"] == "search"]
         gain = ((taken["search_best_pool_score"] - taken["search_score"])
                 / taken["search_best_pool_score"].abs()).mean()
         share = f"{len(taken)} ({len(taken) / len(part):.0%})"
+        rendered = int((part["search_taken"] == "pool_captured").sum())
         lines.append(f"| {scene} | {setting} | {method} | {part['config_hash'].nunique()} | {len(part)} | "
-                     f"{share} | {'—' if taken.empty else f'{gain:.2%}'} |")
+                     f"{share} | {'—' if taken.empty else f'{gain:.2%}'} | {rendered} |")
     return "\n".join(lines) + "\n"
 
 
