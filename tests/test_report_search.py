@@ -122,3 +122,19 @@ def test_the_report_of_a_sweep_that_searched_has_its_section(frame, tmp_path):
     assert search.WORLD_NOTES["twin"] in text and search.WORLD_NOTES["generated"] in text
     assert "search_landscape_0.png" in report["figures"]
     assert "searched off the pool against the pool (fisherrf)" in report["tables"]
+
+
+def test_a_searched_method_is_also_paired_with_the_capture_control(frame):
+    control = []
+    for seed in range(5):
+        control.append(row("gopre_pool_captured", "gopre", seed, "final", psnr=20.2 + seed))
+        control += [searched_round("gopre_pool_captured", "gopre", seed, views, "pool_captured", None, None)
+                    for views in (2, 3)]
+    both = pd.concat([frame, pd.DataFrame(control)], ignore_index=True)
+    assert search.capture_control(both, "gopre_search") == "gopre_pool_captured"
+    assert search.capture_control(both, "fisherrf_search") is None  # another strategy
+    assert search.pool_twin(both, "gopre_search") == "gopre"  # the control searched (it is no pool twin)
+    tables = {t.reference: t for t in search.twin_tables(both, "fixture", skip="gopre")}
+    vs_control = tables["gopre_pool_captured"]
+    assert "simulator's images" in vs_control.title and set(vs_control.rows) == {"gopre_search"}
+    assert vs_control.rows["gopre_search"]["psnr"].mean_difference == pytest.approx(0.3)

@@ -9,7 +9,8 @@ gains negated). Three things come out of a sweep:
 - per method and setting, how often the search won, by how much (relative to the pool's best
   cost) and what it cost (selection time per round beside every other method's);
 - each searched method against its pool twin (the method of the same strategy that never
-  searched, e.g. ``fisherrf_search`` against ``fisherrf``), paired over seeds;
+  searched, e.g. ``fisherrf_search`` against ``fisherrf``) and against the capture control when the
+  sweep has one (the pool picks with the simulator's images, ``gopre_pool_captured``), paired over seeds;
 - the score landscape each round's search saw (``rec.search.evaluated``, read from the job's
   ``result.json``): azimuth x elevation coloured by cost, the starts, the pose found, the pool's best.
 """
@@ -106,6 +107,19 @@ def pool_twin(frame: pd.DataFrame, method: str) -> str | None:
     return twins[0] if len(twins) == 1 else None
 
 
+def capture_control(frame: pd.DataFrame, method: str) -> str | None:
+    """The method of the same strategy whose every round took the pool pick rendered by the
+    simulator (``pool_captured``: e.g. gopre_pool_captured), when there is exactly one: against it
+    a searched method's gain is the searched poses' alone, without the simulator's images."""
+    rounds = search_rounds(frame)
+    final = frame[frame["kind"] == "final"]
+    strategy = set(final.loc[final["method"] == method, "strategy"])
+    controls = [m for m, part in rounds.groupby("method", sort=False)
+                if m != method and (part["search_taken"] == "pool_captured").all()
+                and set(final.loc[final["method"] == m, "strategy"]) == strategy]
+    return controls[0] if len(controls) == 1 else None
+
+
 def twin_tables(frame: pd.DataFrame, title: str, skip: str | None = None) -> list[PairedTable]:
     """Per setting and pool twin, the searched methods of its strategy against it (final PSNR and
     the curve area), paired over scenes and seeds; none against ``skip`` (the report's own
@@ -118,9 +132,10 @@ def twin_tables(frame: pd.DataFrame, title: str, skip: str | None = None) -> lis
     final = with_curve_area(final, rounds).assign(setting=lambda f: _setting(f))
     groups: dict[str, list[str]] = {}
     for method in searched_methods(frame):
-        twin = pool_twin(frame, method)
-        if twin is not None and twin != skip:
-            groups.setdefault(twin, []).append(method)
+        for reference in (pool_twin(frame, method), capture_control(frame, method)):
+            if reference is not None and reference != skip:
+                groups.setdefault(reference, []).append(method)
+    controls = {capture_control(frame, m) for m in searched_methods(frame)} - {None}
     out = []
     for setting in dict.fromkeys(final["setting"]):
         part = final[final["setting"] == setting]
@@ -134,7 +149,9 @@ def twin_tables(frame: pd.DataFrame, title: str, skip: str | None = None) -> lis
                     rows.setdefault(c.method, {})[metric] = c
             if rows:
                 label = f", {setting}" if setting else ""
-                out.append(PairedTable(f"{title}{label}: searched off the pool against the pool ({twin})",
+                against = (f"the pool picks with the simulator's images ({twin})" if twin in controls
+                           else f"the pool ({twin})")
+                out.append(PairedTable(f"{title}{label}: searched off the pool against {against}",
                                        twin, ["psnr", "psnr_auc"], rows))
     return out
 
