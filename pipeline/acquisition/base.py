@@ -86,9 +86,19 @@ class PoseScorer:
         return {view: -s if self.maximizes else s for view, s in scores.items()}
 
 
-def taken_fisher_sum(ctx: SelectionContext, spec: FisherSpec, like: Tensor) -> Tensor:
-    """H_train [D]: the summed Fisher of the taken views (zeros like ``like`` when none is taken)."""
-    return fisher_vectors(ctx, ctx.taken, spec).sum(0) if len(ctx.taken) else torch.zeros_like(like)
+def gain_pose_scorer(ctx: SelectionContext, spec: FisherSpec,
+                     gain: Callable[[Tensor, Tensor], Tensor]) -> PoseScorer:
+    """The pose scorer of a strategy that maximises ``gain(h [D], fishers [B, D]) -> [B]`` over
+    the diagonal Fisher: cost = -gain, H_train (the taken views' summed Fisher) computed once."""
+    h = None
+
+    def cost(cameras: Cameras) -> Tensor:
+        nonlocal h
+        fishers = fisher_vectors(ctx, cameras, spec)  # [B, D]
+        if h is None:
+            h = fisher_vectors(ctx, ctx.taken, spec).sum(0) if len(ctx.taken) else torch.zeros_like(fishers[0])
+        return -gain(h, fishers)
+    return PoseScorer(cost, maximizes=True)
 
 
 def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:

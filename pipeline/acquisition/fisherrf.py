@@ -13,9 +13,8 @@ from dataclasses import dataclass, field
 
 from torch import Tensor
 
-from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, fisher_vectors, greedy_pick,
-                                       pool_and_train_fishers, taken_fisher_sum, timed_selection)
-from pipeline.cameras import Cameras
+from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, gain_pose_scorer, greedy_pick,
+                                       pool_and_train_fishers, timed_selection)
 from pipeline.fisher.exact import FisherSpec
 from pipeline.fisher.posterior import POSTERIOR_LAMBDA
 
@@ -43,12 +42,5 @@ class FisherRFStrategy:
         return timed_selection(ctx, run)
 
     def pose_scorer(self, ctx: SelectionContext) -> PoseScorer:
-        """The information gain of any cameras, negated (a search minimises it); H_train once."""
-        h = None
-
-        def cost(cameras: Cameras) -> Tensor:
-            nonlocal h
-            fishers = fisher_vectors(ctx, cameras, self.spec)  # [B, D]
-            h = taken_fisher_sum(ctx, self.spec, fishers[0]) if h is None else h
-            return -self.information_gain(h, fishers)
-        return PoseScorer(cost, maximizes=True)
+        """The information gain of any cameras, negated (a search minimises it)."""
+        return gain_pose_scorer(ctx, self.spec, self.information_gain)

@@ -15,8 +15,8 @@ import torch
 
 from torch import Tensor
 
-from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, fisher_vectors, greedy_pick,
-                                       pool_and_train_fishers, taken_fisher_sum, timed_selection)
+from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, gain_pose_scorer, greedy_pick,
+                                       pool_and_train_fishers, timed_selection)
 from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec, view_factors
 from pipeline.fisher.posterior import POSTERIOR_LAMBDA
@@ -93,11 +93,4 @@ class PopGSStrategy:
             h, eye = self._taken_blocks(ctx)
             sigma = torch.linalg.inv(h + self.lam * eye)
             return PoseScorer(lambda cameras: -self._block_gains(ctx, sigma, cameras), maximizes=True)
-        h = None
-
-        def cost(cameras: Cameras) -> Tensor:
-            nonlocal h
-            fishers = fisher_vectors(ctx, cameras, self.spec)  # [B, D]
-            h = taken_fisher_sum(ctx, self.spec, fishers[0]) if h is None else h
-            return -self.diag_gain(h, fishers)
-        return PoseScorer(cost, maximizes=True)
+        return gain_pose_scorer(ctx, self.spec, self.diag_gain)
