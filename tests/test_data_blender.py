@@ -8,6 +8,7 @@ import torch
 
 from pipeline.data.blender import read_blender
 from pipeline.data.images import DataError
+from pipeline.data.load import load_scene
 from pipeline.data.synthetic import RADIUS, generate, sample_directions
 from tests.conftest import shared_scene
 
@@ -258,3 +259,37 @@ def test_views_rendered_by_a_worker_pool_are_the_same_files(tmp_path):
         assert (one / name).read_bytes() == (pool / name).read_bytes(), name
     with pytest.raises(ValueError, match="workers must be at least 1"):
         generate(tmp_path / "bad", size=8, n_train=1, n_test=1, workers=0)
+
+
+def test_two_processes_generating_one_scene_at_once_leave_it_whole(tmp_path):
+    """Two sweeps started together share the generated scene's folder: both generate, the scene
+    ends complete and loadable, and no half-written copy stays beside it."""
+    import subprocess
+    import sys
+    code = ("import sys; from pipeline.data.synthetic import generate; "
+            "generate(sys.argv[1], seed=3, size=24, n_train=12, n_test=6, workers=1)")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "scene")]) for _ in range(3)]
+    assert [p.wait(timeout=300) for p in procs] == [0, 0, 0]
+    scene = load_scene(tmp_path / "scene")
+    assert len(scene.split("train").cameras) == 12 and len(scene.split("test").cameras) == 6
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+
+
+def test_generating_over_a_different_scene_replaces_it(tmp_path):
+    generate(tmp_path / "scene", seed=3, size=24, n_train=6, n_test=4)
+    generate(tmp_path / "scene", seed=4, size=24, n_train=8, n_test=4)
+    assert len(load_scene(tmp_path / "scene").split("train").cameras) == 8
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+
+
+def test_a_scene_appears_only_when_whole(tmp_path):
+    """No reader can see a half-written scene: while views are being written the folder is not
+    there; generating the same scene again keeps the one there (not rewritten)."""
+    seen = []
+    generate(tmp_path / "scene", seed=3, size=24, n_train=6, n_test=4, workers=1,
+             progress=lambda split, done, total: seen.append((tmp_path / "scene").exists()))
+    assert seen and not any(seen)
+    stamp = (tmp_path / "scene" / "scene.json").stat().st_mtime_ns
+    generate(tmp_path / "scene", seed=3, size=24, n_train=6, n_test=4, workers=1)
+    assert (tmp_path / "scene" / "scene.json").stat().st_mtime_ns == stamp
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]

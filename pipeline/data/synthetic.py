@@ -20,6 +20,7 @@ import json
 import math
 import multiprocessing
 import os
+import shutil
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -296,7 +297,13 @@ def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100
         raise ValueError(f"size must be at least 8 pixels, got {size}")
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
-    out = Path(out)
+    final = Path(out)
+    # written beside the target, then renamed into place: a reader (or a second sweep generating
+    # the same scene at the same moment) never sees a half-written scene
+    out = final.parent / f".{final.name}.partial-{os.getpid()}"
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
     splits = [("train", n_train, seed * 2 + 1), ("test", n_test, seed * 2 + 2)]
     if workers is None:
         rays = (n_train + n_test) * (size * SUPERSAMPLE) ** 2
@@ -320,7 +327,27 @@ def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100
     with open(out / "scene.json", "w") as f:
         json.dump({"generator": "pipeline.data.synthetic", "version": VERSION, "seed": seed,
                    "size": size, "rich_side_azimuth_deg": 0.0, "up": [0, 0, 1]}, f, indent=1)
-    return out
+    _move_into_place(out, final)
+    return final
+
+
+SCENE_FILES = ("scene.json", "transforms_train.json", "transforms_test.json")
+
+
+def _move_into_place(written: Path, final: Path) -> None:
+    """Rename the written scene to ``final``. If ``final`` already holds the same scene (another
+    process generated it meanwhile: the scene is a function of its settings) the copy is dropped;
+    a different scene or anything else there is replaced."""
+    try:
+        os.rename(written, final)  # atomic; fails when final is a non-empty folder
+        return
+    except OSError:
+        if all((final / name).is_file() and (final / name).read_bytes() == (written / name).read_bytes()
+               for name in SCENE_FILES):
+            shutil.rmtree(written)
+            return
+    shutil.rmtree(final)
+    os.rename(written, final)
 
 
 VIEWS_PER_TASK = 5
