@@ -90,14 +90,11 @@ def gain_pose_scorer(ctx: SelectionContext, spec: FisherSpec,
                      gain: Callable[[Tensor, Tensor], Tensor]) -> PoseScorer:
     """The pose scorer of a strategy that maximises ``gain(h [D], fishers [B, D]) -> [B]`` over
     the diagonal Fisher: cost = -gain, H_train (the taken views' summed Fisher) computed once."""
-    h = None
+    h = taken_fisher(ctx, spec)
 
     def cost(cameras: Cameras) -> Tensor:
-        nonlocal h
         fishers = fisher_vectors(ctx, cameras, spec)  # [B, D]
-        if h is None:
-            h = fisher_vectors(ctx, ctx.taken, spec).sum(0) if len(ctx.taken) else torch.zeros_like(fishers[0])
-        return -gain(h, fishers)
+        return -gain(h if h is not None else torch.zeros_like(fishers[0]), fishers)
     return PoseScorer(cost, maximizes=True)
 
 
@@ -158,14 +155,19 @@ def greedy_pick_sparse(candidates: list[SparseFisher], h_train: Tensor,
     return picks, first
 
 
+def taken_fisher(ctx: SelectionContext, spec: FisherSpec) -> Tensor | None:
+    """H_train [D]: the taken views' summed Fisher with the current model (None when nothing is
+    taken yet: its size then comes from the first Fisher computed)."""
+    return fisher_vectors(ctx, ctx.taken, spec).sum(0) if len(ctx.taken) else None
+
+
 def pool_and_train_fishers(ctx: SelectionContext, order: list[int],
                            spec: FisherSpec) -> tuple[Tensor, Tensor]:
     """Fisher of the candidates in ``order`` [M, D] and H_train [D] (the sum over the taken views,
     recomputed with the current model; zeros when nothing is taken yet)."""
     cands = fisher_vectors(ctx, ctx.candidates[order], spec)
-    if len(ctx.taken) == 0:
-        return cands, torch.zeros_like(cands[0])
-    return cands, fisher_vectors(ctx, ctx.taken, spec).sum(0)
+    h = taken_fisher(ctx, spec)
+    return cands, h if h is not None else torch.zeros_like(cands[0])
 
 
 def greedy_pick(candidate_fishers: Tensor, h_train: Tensor, score: Callable[[Tensor, Tensor], Tensor],

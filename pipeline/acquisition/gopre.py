@@ -18,7 +18,8 @@ from torch import Tensor
 
 from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, fisher_vectors, greedy_pick,
                                        greedy_pick_sparse, pool_and_train_fishers, sparse_fishers,
-                                       sparse_fishers_reusing, summed_fisher, timed_selection)
+                                       sparse_fishers_reusing, summed_fisher, taken_fisher,
+                                       timed_selection)
 from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec, fused_fisher_available
 from pipeline.fisher.features import PARAM_GROUPS
@@ -108,7 +109,7 @@ class GoPreStrategy:
         goal Hessian are computed once; each call computes its cameras' Fishers."""
         if self.goal == "probes" and (ctx.probes is None or len(ctx.probes) == 0):
             raise ValueError("gopre needs probe poses from the target manifold (ctx.probes)")
-        h = fisher_vectors(ctx, ctx.taken, self.spec).sum(0) if len(ctx.taken) else None
+        h = taken_fisher(ctx, self.spec)
         score = self._scorer(fisher_vectors(ctx, ctx.probes, self.spec) if self.goal == "probes" else None)
 
         def cost(cameras: Cameras) -> Tensor:
