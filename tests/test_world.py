@@ -35,6 +35,7 @@ def test_a_poses_camera_sits_at_its_coordinates_and_looks_at_the_centre():
     turn = (az - poses[:, 0] + 180) % 360 - 180
     assert turn.abs().max() < 1e-3 and (el - poses[:, 1]).abs().max() < 1e-3
     assert (r - poses[:, 2]).abs().max() < 1e-4
+    assert torch.equal(space.poses_of(cams), torch.stack([az, el, r], 1))  # the shell's own inverse
     centre = torch.tensor([*space.centre, 1.0], dtype=torch.float64)
     in_camera = cams.viewmats.double() @ centre  # [B, 4]
     pixel = (torch.tensor(K, dtype=torch.float64) @ in_camera[:, :3].T).T

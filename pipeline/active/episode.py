@@ -25,11 +25,10 @@ from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
-from pipeline.world import pose_coordinates
 from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
 from pipeline.cameras import Cameras
-from pipeline.data.protocols import ProtocolViews, build_protocol, resolved_manifold, scene_up
+from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
 from pipeline.data.scene import Scene
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
@@ -122,9 +121,7 @@ class Episode:
                 raise ValueError(f"world={cfg.world}: strategy {cfg.strategy!r} cannot score a pose off the pool "
                                  f"(a pose search needs a strategy that scores any camera: {', '.join(POSE_SCORING)})")
             self.world = make_world(scene, cfg)
-            manifold = (resolved_manifold(cfg.protocol.manifold, scene, scene_up(scene, scene.all_cameras()))
-                        if cfg.protocol.kind == "goal" else None)
-            self.space = episode_pose_space(scene, self.views, manifold)
+            self.space = episode_pose_space(scene, self.views, cfg.protocol)
         self.records: list[RoundRecord] = []
         self.trainer = self._new_trainer()
         self.done = False
@@ -260,9 +257,7 @@ class Episode:
         """The pool pick's camera, its image rendered by the simulator (its pose recorded as the
         pose space's coordinates of the camera, which need not lie on its shell)."""
         camera = self.pool.cameras[rec.selected]
-        az, el, r = pose_coordinates(camera, torch.tensor(self.space.centre), torch.tensor(self.space.up),
-                                     self.space.reference)
-        pose = [float(az[0]), float(el[0]), float(r[0])]
+        pose = self.space.poses_of(camera)[0].tolist()
         image = self.world.capture(camera).to(self.device)
         rec.selected = [self.acquired.add(pose, camera, image)]
         rec.poses = [pose]

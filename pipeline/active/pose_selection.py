@@ -21,10 +21,10 @@ from pipeline.acquisition.base import PoseScorer
 from pipeline.active.config import EpisodeConfig
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold
-from pipeline.data.protocols import ProtocolViews, scene_up
+from pipeline.data.protocols import ProtocolConfig, ProtocolViews, resolved_manifold, scene_up
 from pipeline.data.scene import Scene
 from pipeline.splat import ply
-from pipeline.world import GeneratedWorld, LookAtShell, SearchBudget, TwinWorld, World, pose_coordinates, search_poses
+from pipeline.world import GeneratedWorld, LookAtShell, SearchBudget, TwinWorld, World, search_poses
 
 
 @dataclass
@@ -78,11 +78,13 @@ def make_world(scene: Scene, cfg: EpisodeConfig) -> World:
     raise ValueError(f"no capture simulator for world={cfg.world!r}")
 
 
-def episode_pose_space(scene: Scene, views: ProtocolViews, manifold=None) -> LookAtShell:
+def episode_pose_space(scene: Scene, views: ProtocolViews, protocol: ProtocolConfig) -> LookAtShell:
     """The shell the episode's initial and pool cameras span (all azimuths for an object scene),
     about the scene box's centre (moved
     in the plane to the sector's centre for a sector goal), up from the sector manifold or estimated from the
-    cameras; restricted to the target sector for a sector goal (the goal protocol)."""
+    cameras; restricted to the target sector for a sector goal (the goal protocol's manifold)."""
+    manifold = (resolved_manifold(protocol.manifold, scene, scene_up(scene, scene.all_cameras()))
+                if protocol.kind == "goal" else None)
     cams = scene.split(views.pool_split).cameras[sorted(set(views.initial_ids) | set(views.pool_ids))]
     lo, hi = scene.bounds()
     centre = ((lo + hi) / 2).double()
@@ -127,9 +129,7 @@ def search_next_pose(scorer: PoseScorer, ctx: SelectionContext, pool_costs: dict
     position = {view: k for k, view in enumerate(ctx.candidate_ids)}
     starts = []
     if best_ids:
-        az, el, r = pose_coordinates(ctx.candidates[[position[i] for i in best_ids]],
-                                     torch.tensor(space.centre), torch.tensor(space.up), space.reference)
-        pool_poses = torch.stack([az, el, r], 1)
+        pool_poses = space.poses_of(ctx.candidates[[position[i] for i in best_ids]])
         starts.append(pool_poses[space.contains(pool_poses)])
     starts.append(space.sample(options["random_starts"], torch.Generator().manual_seed(seed)))
     starts = torch.cat(starts)

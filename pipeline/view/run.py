@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import torch
@@ -115,13 +116,11 @@ class EpisodeRun:
         return torch.stack([self.captured.images[v - self.first_captured] if self.is_captured(v)
                             else self.pool.images[v] for v in ids])
 
+    @cached_property
     def pose_space(self):
         """The episode's pose space (off-pool runs), as the episode built it."""
         from pipeline.active.pose_selection import episode_pose_space
-        from pipeline.data.protocols import resolved_manifold, scene_up
-        manifold = (resolved_manifold(self.cfg.protocol.manifold, self.scene, scene_up(self.scene, self.scene.all_cameras()))
-                    if self.cfg.protocol.kind == "goal" else None)
-        return episode_pose_space(self.scene, self.views, manifold)
+        return episode_pose_space(self.scene, self.views, self.cfg.protocol)
 
     @property
     def title(self) -> str:

@@ -261,7 +261,7 @@ class EpisodeViewer:
         if not search.get("evaluated"):
             return
         evaluated = torch.tensor(search["evaluated"], dtype=torch.float64)
-        centres = self.run.pose_space().cameras(evaluated[:, :3]).centers.double().numpy()
+        centres = self.run.pose_space.cameras(evaluated[:, :3]).centers.double().numpy()
         standing = score_ranks(dict(enumerate(evaluated[:, 3].tolist())), True)
         colours = np.array([standing_colour(standing[i]) for i in range(len(evaluated))], dtype=np.uint8)
         self.landscape = self.scene.add_point_cloud("/landscape", centres.astype(np.float32), colours,

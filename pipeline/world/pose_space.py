@@ -143,6 +143,12 @@ class LookAtShell:
         K = torch.tensor(self.K, dtype=torch.float64).expand(len(poses), 3, 3)
         return Cameras(viewmats.float(), K.float().contiguous(), self.width, self.height)
 
+    def poses_of(self, cameras: Cameras) -> Tensor:
+        """The (azimuth_deg, elevation_deg, radius) [C, 3] of cameras' centres in this shell's frame
+        (the inverse of ``cameras`` for a camera on the shell; any camera has coordinates)."""
+        az, el, r = pose_coordinates(cameras, torch.tensor(self.centre), torch.tensor(self.up), self.reference)
+        return torch.stack([az, el, r], 1)
+
     def sample(self, count: int, generator: torch.Generator) -> Tensor:
         """``count`` poses uniform in the unit cube (azimuth, elevation, radius), [count, 3]."""
         return self.poses_of_unit(torch.rand(count, 3, generator=generator, dtype=torch.float64))
