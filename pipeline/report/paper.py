@@ -19,6 +19,7 @@ import pandas as pd
 import yaml
 from scipy.stats import kendalltau
 
+from pipeline.report.rows import finished
 from pipeline.report.stats import MIN_PAIRS, bootstrap_interval
 
 PAPER_TABLES = Path(__file__).with_name("paper_tables.yaml")
@@ -310,6 +311,4 @@ def paper_report(frame: pd.DataFrame, requested: str | None = None,
     datasets, tables = load_paper_tables(path)
     sweep = str(frame["sweep"].iloc[0])
     table = table_for(sweep, requested, tables)
-    final = frame[(frame["status"] == "FINISHED") & (frame["kind"] == "final")
-                  & (frame["job_kind"] == "episode")]
-    return compare(final, table, datasets)
+    return compare(finished(frame, "final"), table, datasets)

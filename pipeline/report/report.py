@@ -14,7 +14,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.report import figures, search
-from pipeline.report.stats import paired_comparisons, with_curve_area
+from pipeline.report.rows import finished
+from pipeline.report.stats import default_reference, paired_comparisons, with_curve_area
 from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
                                     to_latex, to_markdown)
 
@@ -107,11 +108,6 @@ def in_config_order(frame: pd.DataFrame) -> pd.DataFrame:
     return frame.sort_values("job_index", kind="stable").reset_index(drop=True)
 
 
-def _finished(frame: pd.DataFrame, kind: str, job_kind: str) -> pd.DataFrame:
-    ok = frame["status"] == "FINISHED"
-    return frame[ok & (frame["kind"] == kind) & (frame["job_kind"] == job_kind)]
-
-
 def degraded_jobs(final: pd.DataFrame) -> list[str]:
     """'method on scene (seed s): -x.xx dB' for every finished episode flagged ``degraded``."""
     if "degraded" not in final:
@@ -125,10 +121,10 @@ def degraded_jobs(final: pd.DataFrame) -> list[str]:
 def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None) -> list:
     """The main table; with sweep axes and several methods, a methods x datasets table per
     setting; and the paired comparison against ``reference`` (default: gopre when it ran)."""
-    final = _finished(frame, "final", "episode")
+    final = finished(frame, "final", "episode")
     if final.empty:
         return []
-    final = with_curve_area(final, _finished(frame, "round", "episode"))
+    final = with_curve_area(final, finished(frame, "round", "episode"))
     final = final.assign(setting=final["setting"].fillna(""))
     methods = list(dict.fromkeys(final["method"]))
     settings = list(dict.fromkeys(final["setting"]))
@@ -161,8 +157,7 @@ def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None
 def paired_tables(final: pd.DataFrame, title: str, methods: list[str], settings: list[str],
                   reference: str | None) -> list[PairedTable]:
     """Per setting, every method against ``reference`` on final PSNR and the curve area."""
-    if reference is None:
-        reference = "gopre" if "gopre" in methods else None
+    reference = default_reference(methods, reference)
     if reference is None or len(methods) < 2:
         return []
     if reference not in methods:
@@ -193,7 +188,7 @@ def render_latex(table) -> str:
 
 
 def ause_table(frame: pd.DataFrame, title: str) -> list[Table]:
-    rows = _finished(frame, "ause", "uncertainty")
+    rows = finished(frame, "ause", "uncertainty")
     if rows.empty:
         return []
     rows = rows.rename(columns={"uncertainty_method": "Uncertainty"})
@@ -227,20 +222,20 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
     fig_dir = out / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     made = {}
-    rounds = _finished(frame, "round", "episode")
+    rounds = finished(frame, "round", "episode")
     if not rounds.empty:
         made["psnr_vs_views.png"] = figures.psnr_vs_views(rounds, fig_dir / "psnr_vs_views.png")
-    curves = _finished(frame, "sparsification", "uncertainty")
+    curves = finished(frame, "sparsification", "uncertainty")
     if not curves.empty:
         made["sparsification.png"] = figures.sparsification(
-            curves, _finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
-    final = _finished(frame, "final", "episode")
+            curves, finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
+    final = finished(frame, "final", "episode")
     for k, scene in enumerate(dict.fromkeys(final["scene"])):  # one grid per scene (paper Fig. 5)
         renders = grid_images(sweep_dir, final, "renders", scene)
         if any(renders.values()):
             name = "qualitative.png" if k == 0 else f"qualitative_{scene}.png"
             made[name] = figures.qualitative_grid(renders, fig_dir / name)
-    maps = grid_images(sweep_dir, _finished(frame, "final", "uncertainty"), "uncertainty")
+    maps = grid_images(sweep_dir, finished(frame, "final", "uncertainty"), "uncertainty")
     if any(maps.values()):
         made["uncertainty_maps.png"] = figures.image_grid(
             {f"view {i}": [p] for files in maps.values() for i, p in enumerate(files)},
@@ -294,9 +289,9 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     title = str(frame["sweep"].iloc[0])
-    paired_reference = reference or ("gopre" if "gopre" in set(frame["method"]) else None)
+    methods = list(dict.fromkeys(finished(frame, "final")["method"]))
     tables = (episode_tables(frame, title, reference) + ause_table(frame, title)
-              + search.twin_tables(frame, title, skip=paired_reference))
+              + search.twin_tables(frame, title, skip=default_reference(methods, reference)))
     markdown = "".join(render_markdown(t) + "\n" for t in tables)
     (out / "table.md").write_text(markdown)
     (out / "table.tex").write_text("\n".join(render_latex(t) for t in tables))

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.report.stats import paired_comparisons
+from pipeline.report.rows import finished
+from pipeline.report.stats import paired_comparisons, with_curve_area
 from pipeline.report.tables import PairedTable
 
 
@@ -32,8 +33,8 @@ def search_rounds(frame: pd.DataFrame) -> pd.DataFrame:
     """The finished round rows of episodes that searched off the pool (empty when none did)."""
     if "search_taken" not in frame:
         return frame.iloc[:0]
-    rounds = frame[(frame["kind"] == "round") & frame["search_taken"].notna()]
-    return rounds[rounds.get("status", "FINISHED") == "FINISHED"] if "status" in rounds else rounds
+    rounds = finished(frame, "round")
+    return rounds[rounds["search_taken"].notna()]
 
 
 WORLD_NOTES = {
@@ -80,9 +81,7 @@ def search_table(frame: pd.DataFrame) -> str:
 def selection_time_table(frame: pd.DataFrame) -> str:
     """Markdown: selection time per round of every method (the search's included), per scene and
     setting, mean over episodes: the cost a win off the pool must be stated against."""
-    final = frame[(frame["kind"] == "final") & (frame.get("job_kind", "episode") == "episode")]
-    if "status" in final:
-        final = final[final["status"] == "FINISHED"]
+    final = finished(frame, "final")
     final = final.assign(setting=_setting(final))
     lines = ["| scene | setting | method | selection CPU s / round | selection wall s / round |",
              "|---|---|---|---|---|"]
@@ -124,18 +123,15 @@ def twin_tables(frame: pd.DataFrame, title: str, skip: str | None = None) -> lis
     """Per setting and pool twin, the searched methods of its strategy against it (final PSNR and
     the curve area), paired over scenes and seeds; none against ``skip`` (the report's own
     reference, whose paired tables already have those rows)."""
-    from pipeline.report.stats import with_curve_area
-    final = frame[(frame["kind"] == "final") & (frame.get("job_kind", "episode") == "episode")]
-    if "status" in final:
-        final = final[final["status"] == "FINISHED"]
-    rounds = frame[(frame["kind"] == "round") & frame["config_hash"].isin(final["config_hash"])]
-    final = with_curve_area(final, rounds).assign(setting=lambda f: _setting(f))
+    final = finished(frame, "final")
+    final = with_curve_area(final, finished(frame, "round")).assign(setting=lambda f: _setting(f))
+    references = {m: (pool_twin(frame, m), capture_control(frame, m)) for m in searched_methods(frame)}
+    controls = {control for _, control in references.values()} - {None}
     groups: dict[str, list[str]] = {}
-    for method in searched_methods(frame):
-        for reference in (pool_twin(frame, method), capture_control(frame, method)):
+    for method, pair in references.items():
+        for reference in pair:
             if reference is not None and reference != skip:
                 groups.setdefault(reference, []).append(method)
-    controls = {capture_control(frame, m) for m in searched_methods(frame)} - {None}
     out = []
     for setting in dict.fromkeys(final["setting"]):
         part = final[final["setting"] == setting]

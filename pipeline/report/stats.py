@@ -87,6 +87,13 @@ class PairedComparison:
     wilcoxon_p: float | None = None  # two-sided signed-rank test of the differences
 
 
+def default_reference(methods: list[str], reference: str | None = None) -> str | None:
+    """The method paired comparisons are against: ``reference`` when given, else gopre when it ran."""
+    if reference is not None:
+        return reference
+    return "gopre" if "gopre" in methods else None
+
+
 def paired_differences(final: pd.DataFrame, reference: str, metric: str,
                        higher_is_better: bool = True) -> dict[str, np.ndarray]:
     """Per method other than ``reference``: method - reference over the pairs both finished."""
