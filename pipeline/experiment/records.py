@@ -198,11 +198,11 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
 # search_taken as a metric: which pick a round took (a captured view has a pose: search, pool_captured)
 SEARCH_METRICS = ("search_score", "search_best_start_score", "search_best_pool_score", "search_taken")
 SEARCH_TAKEN_CODES = {"pool": 0.0, "search": 1.0, "pool_captured": 2.0}
+SEARCH_TAKEN_NAMES = {code: name for name, code in SEARCH_TAKEN_CODES.items()}
 
 
 def _search_columns(history: dict, step: int) -> dict:
     if step not in history.get("search_taken", {}):
         return {}
-    taken = {code: name for name, code in SEARCH_TAKEN_CODES.items()}
-    return {"search_taken": taken[history["search_taken"][step]],
+    return {"search_taken": SEARCH_TAKEN_NAMES[history["search_taken"][step]],
             **{key: history[key].get(step) for key in SEARCH_METRICS if key != "search_taken"}}
