@@ -236,3 +236,67 @@ def test_a_probe_that_is_a_candidate_or_a_taken_view_reuses_its_fisher():
                            settings=RenderSettings(backend="compiled"), taken_ids=taken_ids,
                            probe_ids=[5, 99])
     assert make_strategy("gopre").select(ctx, 1).fisher_views == len(candidate_ids) + len(taken_ids) + 1
+
+
+def test_views_side_by_side_equal_one_view_at_a_time_bit_for_bit():
+    """Several cameras run one per thread with serial kernels; one camera splits its kernels over
+    tiles. The Fisher of every view is the same to the bit either way (the per-tile rows are summed
+    in a fixed order whatever thread wrote them), with two threads and with one."""
+    from pipeline.fisher.exact import view_fisher_sparse
+    cams = orbit_cameras(5, 30, 26, dtype=F64, radius=2.5)
+    g = with_hard_cases(random_scene(300, seed=5, sh_degree=3, dtype=F64,
+                                     opacity_range=(0.3, 0.999)), cams)
+    bg = torch.tensor([0.3, 0.6, 0.9], dtype=F64)
+    settings = RenderSettings(backend="compiled")
+    before = torch.get_num_threads()
+    try:
+        for threads in (2, 1):
+            torch.set_num_threads(threads)
+            for spec in (FisherSpec(), SPECS[2]):
+                together = view_fisher_sparse(g, cams, bg, spec, settings)
+                alone = [view_fisher_sparse(g, cams[c:c + 1], bg, spec, settings)[0]
+                         for c in range(len(cams))]
+                assert len(together) == len(cams)
+                for c, (a, b) in enumerate(zip(together, alone)):
+                    assert torch.equal(a.ids, b.ids) and torch.equal(a.rows, b.rows), (threads, c)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_map_in_threads_keeps_order_bounds_the_work_in_flight_and_raises():
+    import threading
+    import time
+    lock, state = threading.Lock(), {"running": 0, "most": 0, "threads": set()}
+
+    def work(i):
+        with lock:
+            state["running"] += 1
+            state["most"] = max(state["most"], state["running"])
+            state["threads"].add(threading.get_ident())
+        time.sleep(0.002 * (7 - i % 7))  # later items finish first
+        with lock:
+            state["running"] -= 1
+        return i * i
+
+    assert list(compiled.map_in_threads(work, 23, 2)) == [i * i for i in range(23)]
+    assert state["most"] <= 2 and len(state["threads"]) == 2
+    assert list(compiled.map_in_threads(work, 4, 1)) == [0, 1, 4, 9]
+    asked = []
+    lazy = compiled.map_in_threads(lambda i: asked.append(i) or i, 100, 2)
+    assert next(lazy) == 0
+    time.sleep(0.05)
+    assert len(asked) <= 5  # 2 x threads ahead of what was taken, not the whole pool
+    lazy.close()
+    assert list(compiled.map_in_threads(work, 0, 2)) == []
+    started = []
+
+    def fails_at_3(i):
+        started.append(i)
+        if i == 3:
+            raise ValueError("view 3")
+        return i
+
+    results = compiled.map_in_threads(fails_at_3, 1000, 2)
+    with pytest.raises(ValueError, match="view 3"):
+        list(results)
+    assert len(started) < 20  # the pool was not run through after the failure

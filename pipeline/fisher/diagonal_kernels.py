@@ -100,7 +100,7 @@ def _diagonal_block(lo, hi, ids, sums, means, log_scales, quats, logit_opacities
                     col += 1
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def fisher_diagonal(ids, sums, means, log_scales, quats, logit_opacities, sh0, shn, view, intr,
                     width, height, sh_degree, near, groups, channel_summed, out, workers):
     """Write diag(A^T G A) of Gaussian ids[j] into out[j] [M, P] float64 for the M Gaussians the

@@ -478,7 +478,9 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
                  spec: FisherSpec, settings: RenderSettings):
     """Yield one ``SparseFisher`` per camera by the fused compiled path (``diagonal_kernels``):
     projection, walk and Fisher rows as ``feature_fisher_compiled``, the rows summed per Gaussian,
-    then diag(A^T G A) of the reached Gaussians written by one kernel."""
+    then diag(A^T G A) of the reached Gaussians written by one kernel. Several cameras are computed
+    side by side, one per thread (``compiled.map_in_threads``); one camera splits its kernels over
+    the threads instead. Either way each view's numbers are the same."""
     from pipeline.fisher import diagonal_kernels
     if len(gaussians) == 0:
         raise ValueError("gaussians: cannot compute the Fisher of an empty scene")
@@ -492,13 +494,17 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
     g = gaussians.detach()
     n, degree = len(g), active_sh_degree(g, spec.sh_degree)
     arrays = [compiled.to_numpy(v) for v in g.params().values()]
-    workers = compiled.use_threads()
-    for c in range(len(cams)):
-        with torch.no_grad():
+    threads = compiled.use_threads()
+    kernel_workers = threads if len(cams) == 1 else 1  # views side by side, else tiles
+
+    def one_view(c: int) -> SparseFisher:
+        with torch.no_grad():  # grad mode is per thread
             proj = compiled.project_compiled(g, cams.viewmats[c], cams.Ks[c], cams.width,
-                                             cams.height, spec.sh_degree, settings.near)
+                                             cams.height, spec.sh_degree, settings.near,
+                                             workers=kernel_workers)
         row_ids, rows = _compiled_fisher_rows(proj, cams.width, cams.height, bg,
-                                              settings.tile_size, spec.channel_summed, workers)
+                                              settings.tile_size, spec.channel_summed,
+                                              kernel_workers)
         seen = np.zeros(n, dtype=np.bool_)
         seen[row_ids] = True
         ids = np.flatnonzero(seen)
@@ -508,8 +514,10 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
             ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()),
             compiled.intrinsics(cams.Ks[c]),
             int(cams.width), int(cams.height), int(degree), float(settings.near), groups,
-            spec.channel_summed, out, workers)
-        yield SparseFisher(torch.from_numpy(ids), torch.from_numpy(out))
+            spec.channel_summed, out, kernel_workers)
+        return SparseFisher(torch.from_numpy(ids), torch.from_numpy(out))
+
+    yield from compiled.map_in_threads(one_view, len(cams), threads)
 
 
 def fused_fisher_available(gaussians: Gaussians, settings: RenderSettings) -> bool:

@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 import torch
 from torch import Tensor
 
 _STATE: dict = {}
+T = TypeVar("T")
 DISABLE_ENV = "GOPRE_DISABLE_COMPILED"  # set to 1 to force the torch fallback (tests, debugging)
 
 
@@ -134,6 +138,30 @@ def use_threads() -> int:
     return threads
 
 
+def map_in_threads(fn: Callable[[int], T], count: int, workers: int) -> Iterator[T]:
+    """``fn(0), ..., fn(count - 1)``, yielded in that order, computed on ``workers`` threads.
+
+    For independent per-view work whose kernels release the GIL (``nogil``): each call runs its
+    kernels on one thread (``workers=1`` inside ``fn``), so the per-view steps that do not split
+    over tiles (projection set-up, binning, the depth sort, per-Gaussian sums, the Python between
+    them) run side by side too. The results are those of a serial loop: each call computes the same
+    thing whatever thread runs it. At most ``2 * workers`` calls are in flight, so a long pool is
+    never held in memory beyond what the caller keeps."""
+    if workers <= 1 or count <= 1:
+        for i in range(count):
+            yield fn(i)
+        return
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gopre-view") as pool:
+        pending = deque(pool.submit(fn, i) for i in range(min(count, 2 * workers)))
+        submitted = len(pending)
+        while pending:
+            result = pending.popleft().result()
+            if submitted < count:
+                pending.append(pool.submit(fn, submitted))
+                submitted += 1
+            yield result
+
+
 def intrinsics(K: Tensor) -> np.ndarray:
     """(fx, fy, cx, cy) float64 of a [3, 3] pinhole matrix, as the kernels take them."""
     return np.array([float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
@@ -237,10 +265,11 @@ class _CompiledProjection(torch.autograd.Function):
     (no gradient to the camera)."""
 
     @staticmethod
-    def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera):
+    def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera, workers):
         arrays = tuple(to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0, shN))
-        outs = projection_kernels().project_forward(*arrays, *camera, use_threads())
-        ctx.arrays, ctx.camera = arrays, camera
+        workers = use_threads() if workers is None else workers
+        outs = projection_kernels().project_forward(*arrays, *camera, workers)
+        ctx.arrays, ctx.camera, ctx.workers = arrays, camera, workers
         dtype = means.dtype
         means2d, conics, depths, radii, colors, opacities = (torch.from_numpy(x) for x in outs)
         ctx.mark_non_differentiable(radii)
@@ -252,21 +281,22 @@ class _CompiledProjection(torch.autograd.Function):
         grads = projection_kernels().project_backward(
             *ctx.arrays, *ctx.camera,
             *(to_numpy(x.double()) for x in (g_means2d, g_conics, g_depths, g_colors, g_opacities)),
-            use_threads())
+            ctx.workers)
         dtype = g_means2d.dtype
-        return (*(torch.from_numpy(x).to(dtype) for x in grads), None)
+        return (*(torch.from_numpy(x).to(dtype) for x in grads), None, None)
 
 
 def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
-                     sh_degree: int | None = None, near: float = 0.01):
+                     sh_degree: int | None = None, near: float = 0.01, workers: int | None = None):
     """Same contract as ``project.project`` (a ``Projection``), by the compiled kernels.
 
     Differentiable w.r.t. the Gaussians' raw parameters (not the camera); CPU tensors only.
+    ``workers``: the kernels' threads (default ``use_threads()``; 1 inside ``map_in_threads``).
     """
     from pipeline.splat.project import Projection, active_sh_degree
     sh_degree = active_sh_degree(gaussians, sh_degree)
     camera = kernel_camera(viewmat, K, width, height, sh_degree, near)
     means2d, conics, depths, radii, colors, opacities = _CompiledProjection.apply(
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
-        gaussians.sh0, gaussians.shN, camera)
+        gaussians.sh0, gaussians.shN, camera, workers)
     return Projection(means2d, conics, depths, radii, colors, opacities)

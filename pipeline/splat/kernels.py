@@ -39,7 +39,7 @@ PACKED = 8
 FISHER_ROW = 40  # 21 (S h h^T, upper triangle) + 18 (s_c w h) + 1 (w^2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pack(means2d, conics, opacities):
     """[N, 8] float64 rows (u, v, a, b, c, opacity, log(ALPHA_MIN / opacity), 0)."""
     n = means2d.shape[0]
@@ -72,7 +72,7 @@ def depth_order(depths: np.ndarray) -> np.ndarray:
     return _radix_order(keys, width)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _radix_order(keys, width):
     """Stable order of the unsigned ``keys`` [N] (the low ``width`` bits), by RADIX_BITS digits."""
     n = keys.shape[0]
@@ -94,7 +94,7 @@ def _radix_order(keys, width):
     return order
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def alpha_tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
     """[N, 4] int64 half-open tile ranges (x0, x1, y0, y1); empty for radius 0 (culled).
 
@@ -133,7 +133,7 @@ def alpha_tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
     return rects
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bin_tiles(rects, depth_order, tiles_x, tiles_y):
     """Per-tile Gaussian lists in front-to-back order by a counting sort over tiles.
 
@@ -239,7 +239,7 @@ def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile
         walked[y, x] = last[p]
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def composite_forward(gauss_ids, offsets, counts, packed, features, width, height, tiles_x,
                       tile_size, workers):
     """Front-to-back walk of every pixel over its tile's list.
@@ -264,7 +264,7 @@ def composite_forward(gauss_ids, offsets, counts, packed, features, width, heigh
     return image, final, walked
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def walked_rows(walked, offsets, gauss_ids, tiles_x, tile_size):
     """Rows for the walked prefix of every tile's list: (row_start [T], row_ids [R]).
 
@@ -348,7 +348,7 @@ def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, wa
             out[k] = local[k]
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features, final, walked,
                        grad_image, grad_final, tiles_x, tile_size, workers):
     """Gradient rows [R, 6 + D] float64 (u, v, conic a, b, c, opacity, features), one per walked
@@ -441,7 +441,7 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
             out[k] = local[k]
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, walked,
                 background, tiles_x, tile_size, channel_summed, workers):
     """Per walked intersection, the pixel sums of the feature-space Fisher pieces, [R, 40] float64.
@@ -469,7 +469,7 @@ def fisher_rows(gauss_ids, offsets, row_start, num_rows, packed, colors, final, 
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sum_rows(row_ids, rows, n, like):
     """Per-Gaussian sums [n, K] (dtype of ``like``) of rows [R, K] by their Gaussian ids [R], in
     row order: deterministic whatever the thread schedule that wrote the rows."""

@@ -144,7 +144,7 @@ def _conic_terms(m):
     return a0 + EPS_2D, b, c0 + EPS_2D, det
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
                     sh_degree, near, workers):
     """Per Gaussian: means2d [N, 2], conics [N, 3], depths [N], radii [N] int64, colors [N, 3],
@@ -202,7 +202,7 @@ def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, 
         opacities[g] = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def project_backward(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
                      height, sh_degree, near, g_means2d, g_conics, g_depths, g_colors, g_opac,
                      workers):
@@ -324,7 +324,7 @@ def _chain(g, k0, k1, k2, gu, gv, g_depth, gdx, gdy, gdz, log_scales, view, intr
         out[i] += view[0, i] * g_x + view[1, i] * g_y + view[2, i] * g_z
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def chain_scratch():
     """Per-block scratch of the backward chain: jac, rs, m, qn, rot, d, unit, basis, bx, by, bz
     (SH basis and its gradient), gm, gj, grs, gr (the chain's intermediate gradients)."""
@@ -455,7 +455,7 @@ def _jacobian_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn,
                                         geometry[g], sh_slope[g])
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def feature_jacobian(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
                      sh_degree, near, workers):
     """The Jacobian of a view's 2D features w.r.t. the raw parameters, per Gaussian:
