@@ -468,3 +468,26 @@ def test_the_first_iterations_of_a_recipe_keep_its_schedules():
     expected = t.extent * math.exp((1 - 1000 / 30_000) * math.log(lr.means_init) + 1000 / 30_000 * math.log(lr.means_final))
     assert t._means_lr() == pytest.approx(expected, rel=1e-12)
     assert sparsification_fit(fit, 5000, seed=3) == fit  # a shorter recipe is used as it is
+
+
+def test_a_steps_psnr_is_that_of_its_render_before_the_update_and_nan_when_skipped(monkeypatch):
+    import pipeline.fit.trainer as trainer_module
+    g = random_scene(80, seed=2)
+    cams = sphere_cameras(3, 16, 16)
+    with torch.no_grad():
+        imgs = render(random_scene(80, seed=3), cams).rgb
+    t = Trainer(g, cams, imgs, tiny_preset())
+    for _ in range(3):
+        before = t.gaussians.clone()
+        info = t.train_step()
+        view = next(i for i in range(len(cams)) if torch.equal(imgs[i], info.target))
+        with torch.no_grad():
+            rendered = render(before, cams[view], t.background, t.active_sh_degree).rgb[0]
+            expected = psnr(rendered, imgs[view])
+        assert info.psnr == pytest.approx(float(expected), abs=1e-4)
+        assert all(p.grad is not None for p in t.params.values())
+    real_loss = trainer_module.photometric_loss
+    monkeypatch.setattr(trainer_module, "photometric_loss",
+                        lambda image, target, w: real_loss(image, target, w) * float("nan"))
+    skipped = t.train_step()
+    assert math.isnan(skipped.psnr) and math.isnan(skipped.loss)

@@ -52,10 +52,21 @@ def scene_extent(cameras: Cameras, what: str = "the training cameras") -> float:
 
 @dataclass
 class StepInfo:
+    """One step: its loss, the model's size after it, and its render [H, W, 3] (detached) with the
+    target, from which ``psnr`` is computed when read (the progress bar reads it every tenth step;
+    computing it every step cost ~1% of training). A skipped step has neither: psnr is NaN."""
+
     step: int
     loss: float
-    psnr: float
     num_gaussians: int
+    image: Tensor | None = None
+    target: Tensor | None = None
+
+    @property
+    def psnr(self) -> float:
+        if self.image is None or self.target is None:
+            return float("nan")
+        return float(psnr(self.image, self.target))
 
 
 class Trainer:
@@ -95,6 +106,7 @@ class Trainer:
         if not bool(torch.isfinite(images).all()):
             raise ValueError("images contain NaN or inf")
         self.cameras, self.images = cameras, images
+        self._view_cameras = [cameras[i] for i in range(len(cameras))]  # one per step otherwise
         self._order = []
 
     def _next_view(self) -> int:
@@ -157,24 +169,30 @@ class Trainer:
             if group["name"] == "means":
                 group["lr"] = self._means_lr()
         view = self._next_view()
-        cams, target = self.cameras[view], self.images[view]
+        cams, target = self._view_cameras[view], self.images[view]
         renderer = training_view_renderer(self.settings, self.background.device)
         out = renderer(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
                        self.settings)
         image = out.image
         loss = photometric_loss(image, target, cfg.ssim_weight)
-        self.optimizer.zero_grad(set_to_none=True)
+        self._clear_grads()
         loss.backward()
         if not self._finite(loss):
             self._skip(view, float(loss.detach()))
             self._density_control()  # keeps periodic events on their schedule
-            return StepInfo(self.step, float("nan"), float("nan"), self.params["means"].shape[0])
+            return StepInfo(self.step, float("nan"), self.params["means"].shape[0])
         if self.step < dcfg.stop:
             self.stats.update(out.means2d_grad(), out.radii, cams.width, cams.height)
         self.optimizer.step()
         self._density_control()
-        return StepInfo(self.step, float(loss.detach()), float(psnr(image.detach(), target)),
-                        self.params["means"].shape[0])
+        return StepInfo(self.step, float(loss.detach()), self.params["means"].shape[0],
+                        image.detach(), target)
+
+    def _clear_grads(self) -> None:
+        """``optimizer.zero_grad(set_to_none=True)`` without its profiler hooks (a step's
+        parameters are exactly ``self.params``, each in its own group)."""
+        for p in self.params.values():
+            p.grad = None
 
     def _finite(self, loss: Tensor) -> bool:
         if not bool(torch.isfinite(loss)):
@@ -209,7 +227,9 @@ class Trainer:
         return path
 
     def gaussians_for_grad(self) -> Gaussians:
-        return Gaussians(**self.params)
+        """The parameters (leaves) as ``Gaussians``, not re-validated: they were at construction,
+        and a step whose gradient is not finite never reaches them."""
+        return Gaussians.unchecked(**self.params)
 
     def _density_control(self) -> None:
         dcfg = self.config.densify
