@@ -30,7 +30,7 @@ from skimage.metrics import structural_similarity
 from torch import Tensor
 
 from pipeline.cameras import Cameras
-from pipeline.splat import Gaussians, RenderSettings, render
+from pipeline.splat import Gaussians, RenderSettings, compiled, render
 
 SSIM_CONVENTION = ("ssim: 3DGS's (zero-padded windows, mean over all pixels); "
                    "ssim_skimage: scikit-image's structural_similarity (valid interior)")
@@ -130,16 +130,27 @@ class ViewMetrics:
 def evaluate_views(gaussians: Gaussians, cameras: Cameras, images: Tensor, background: Tensor,
                    lpips: LpipsMetric | None = None, settings: RenderSettings = RenderSettings(),
                    ssim: bool = True) -> ViewMetrics:
-    """Render each camera [C] and compare with ``images`` [C, H, W, 3]."""
+    """Render each camera [C] and compare with ``images`` [C, H, W, 3]. On the compiled backend
+    the views are rendered and scored side by side, one per thread (the same numbers)."""
     if images.shape[0] != len(cameras):
         raise ValueError(f"{images.shape[0]} images for {len(cameras)} cameras")
+
+    def one_view(i: int) -> tuple[Tensor, float, float, float]:
+        with torch.no_grad():  # grad mode is per thread
+            pred = render(gaussians, cameras[i], background, settings=settings).rgb[0].clamp(0, 1)
+            return (pred, psnr_value(pred, images[i]),
+                    ssim_value(pred, images[i]) if ssim else float("nan"),
+                    ssim_skimage_value(pred, images[i]) if ssim else float("nan"))
+
+    compiled_views = compiled.resolve_backend(settings.backend, gaussians.means.device) == "compiled"
+    threads = compiled.use_threads() if compiled_views else 1
     psnrs, ssims, skimage, lp = [], [], [], []
-    for i in range(len(cameras)):
-        pred = render(gaussians, cameras[i], background, settings=settings).rgb[0].clamp(0, 1)
-        psnrs.append(psnr_value(pred, images[i]))
-        ssims.append(ssim_value(pred, images[i]) if ssim else float("nan"))
-        skimage.append(ssim_skimage_value(pred, images[i]) if ssim else float("nan"))
-        if lpips is not None and lpips.available:
+    views = compiled.map_in_threads(one_view, len(cameras), threads)
+    for i, (pred, psnr_i, ssim_i, skimage_i) in enumerate(views):
+        psnrs.append(psnr_i)
+        ssims.append(ssim_i)
+        skimage.append(skimage_i)
+        if lpips is not None and lpips.available:  # the network runs here, one view at a time
             lp.append(lpips(pred, images[i]))
     if lpips is None:
         return ViewMetrics(psnrs, ssims, skimage)

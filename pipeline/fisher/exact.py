@@ -494,14 +494,12 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
     g = gaussians.detach()
     n, degree = len(g), active_sh_degree(g, spec.sh_degree)
     arrays = [compiled.to_numpy(v) for v in g.params().values()]
-    threads = compiled.use_threads()
-    kernel_workers = threads if len(cams) == 1 else 1  # views side by side, else tiles
 
     def one_view(c: int) -> SparseFisher:
+        kernel_workers = compiled.use_threads()  # 1 when views run side by side
         with torch.no_grad():  # grad mode is per thread
             proj = compiled.project_compiled(g, cams.viewmats[c], cams.Ks[c], cams.width,
-                                             cams.height, spec.sh_degree, settings.near,
-                                             workers=kernel_workers)
+                                             cams.height, spec.sh_degree, settings.near)
         row_ids, rows = _compiled_fisher_rows(proj, cams.width, cams.height, bg,
                                               settings.tile_size, spec.channel_summed,
                                               kernel_workers)
@@ -517,7 +515,7 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
             spec.channel_summed, out, kernel_workers)
         return SparseFisher(torch.from_numpy(ids), torch.from_numpy(out))
 
-    yield from compiled.map_in_threads(one_view, len(cams), threads)
+    yield from compiled.map_in_threads(one_view, len(cams), compiled.use_threads())
 
 
 def fused_fisher_available(gaussians: Gaussians, settings: RenderSettings) -> bool:

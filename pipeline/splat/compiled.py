@@ -13,6 +13,7 @@ overrides it); one thread runs them serially. Loading them leaves torch's thread
 from __future__ import annotations
 
 import os
+import threading
 import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -25,6 +26,7 @@ from torch import Tensor
 
 _STATE: dict = {}
 T = TypeVar("T")
+_THREAD = threading.local()  # side_by_side: set in map_in_threads' threads
 DISABLE_ENV = "GOPRE_DISABLE_COMPILED"  # set to 1 to force the torch fallback (tests, debugging)
 
 
@@ -128,9 +130,10 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 def use_threads() -> int:
     """The kernels' thread count: what torch was given, capped at numba's pool. One thread runs
     the kernels serially without touching numba's thread pool at all (``set_num_threads`` would
-    start it, and its idle threads spin on the cores other jobs are using)."""
+    start it, and its idle threads spin on the cores other jobs are using). Inside
+    ``map_in_threads`` it is 1: the calls there run side by side, each on one thread."""
     threads = torch.get_num_threads()
-    if threads <= 1:
+    if threads <= 1 or getattr(_THREAD, "side_by_side", False):
         return 1
     import numba
     threads = max(1, min(threads, numba.config.NUMBA_NUM_THREADS))
@@ -141,23 +144,29 @@ def use_threads() -> int:
 def map_in_threads(fn: Callable[[int], T], count: int, workers: int) -> Iterator[T]:
     """``fn(0), ..., fn(count - 1)``, yielded in that order, computed on ``workers`` threads.
 
-    For independent per-view work whose kernels release the GIL (``nogil``): each call runs its
-    kernels on one thread (``workers=1`` inside ``fn``), so the per-view steps that do not split
-    over tiles (projection set-up, binning, the depth sort, per-Gaussian sums, the Python between
-    them) run side by side too. The results are those of a serial loop: each call computes the same
-    thing whatever thread runs it. At most ``2 * workers`` calls are in flight, so a long pool is
-    never held in memory beyond what the caller keeps."""
+    For independent per-view work whose kernels release the GIL (``nogil``): within ``fn`` the
+    kernels run on one thread (``use_threads()`` is 1 there), so the per-view steps that do not
+    split over tiles (projection set-up, binning, the depth sort, per-Gaussian sums, the Python
+    between them) run side by side too. The results are those of a serial loop: each call
+    computes the same thing whatever thread runs it, and the kernels' results do not depend on
+    their thread count. Grad mode is per thread: ``fn`` sets its own. At most ``2 * workers``
+    calls are in flight, so a long pool is never held in memory beyond what the caller keeps."""
     if workers <= 1 or count <= 1:
         for i in range(count):
             yield fn(i)
         return
+
+    def side_by_side(i: int) -> T:
+        _THREAD.side_by_side = True
+        return fn(i)
+
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gopre-view") as pool:
-        pending = deque(pool.submit(fn, i) for i in range(min(count, 2 * workers)))
+        pending = deque(pool.submit(side_by_side, i) for i in range(min(count, 2 * workers)))
         submitted = len(pending)
         while pending:
             result = pending.popleft().result()
             if submitted < count:
-                pending.append(pool.submit(fn, submitted))
+                pending.append(pool.submit(side_by_side, submitted))
                 submitted += 1
             yield result
 
@@ -265,9 +274,9 @@ class _CompiledProjection(torch.autograd.Function):
     (no gradient to the camera)."""
 
     @staticmethod
-    def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera, workers):
+    def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera):
         arrays = tuple(to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0, shN))
-        workers = use_threads() if workers is None else workers
+        workers = use_threads()
         outs = projection_kernels().project_forward(*arrays, *camera, workers)
         ctx.arrays, ctx.camera, ctx.workers = arrays, camera, workers
         dtype = means.dtype
@@ -283,20 +292,19 @@ class _CompiledProjection(torch.autograd.Function):
             *(to_numpy(x.double()) for x in (g_means2d, g_conics, g_depths, g_colors, g_opacities)),
             ctx.workers)
         dtype = g_means2d.dtype
-        return (*(torch.from_numpy(x).to(dtype) for x in grads), None, None)
+        return (*(torch.from_numpy(x).to(dtype) for x in grads), None)
 
 
 def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: int,
-                     sh_degree: int | None = None, near: float = 0.01, workers: int | None = None):
+                     sh_degree: int | None = None, near: float = 0.01):
     """Same contract as ``project.project`` (a ``Projection``), by the compiled kernels.
 
     Differentiable w.r.t. the Gaussians' raw parameters (not the camera); CPU tensors only.
-    ``workers``: the kernels' threads (default ``use_threads()``; 1 inside ``map_in_threads``).
     """
     from pipeline.splat.project import Projection, active_sh_degree
     sh_degree = active_sh_degree(gaussians, sh_degree)
     camera = kernel_camera(viewmat, K, width, height, sh_degree, near)
     means2d, conics, depths, radii, colors, opacities = _CompiledProjection.apply(
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
-        gaussians.sh0, gaussians.shN, camera, workers)
+        gaussians.sh0, gaussians.shN, camera)
     return Projection(means2d, conics, depths, radii, colors, opacities)
