@@ -1,9 +1,11 @@
 """Training throughput: iterations per second of the CPU preset's fit (render, loss, backward,
 Adam, densification statistics) on a random scene, per backend, in one process.
 
-The trainer fits N random Gaussians to views rendered from a different random scene; the timed
-iterations are taken before densification starts, so N stays fixed and every backend does the
-same work.
+The trainer fits N random Gaussians to views rendered from a different random scene, with
+densification moved past the run (its statistics are still gathered), so N stays fixed and every
+backend does the same work. The backends' timed blocks are interleaved (block 1 of each backend,
+then block 2, ...), so a change in the machine's load touches them alike; the figure is the
+median block.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 import json
 import statistics
 import time
+from dataclasses import replace
 
 import torch
 
@@ -31,43 +34,49 @@ def training_views(size: int, n: int, views: int = 8):
     return cams, images.clamp(0, 1)
 
 
-def iterations_per_second(backend: str, size: int, n: int, steps: int, repeats: int) -> float:
-    """Median over ``repeats`` blocks of ``steps`` iterations (after 2 warm-up iterations)."""
+def _trainer(size: int, n: int) -> Trainer:
     cams, images = training_views(size, n)
     config = cpu_episode().fit.with_changes(image_width=size)  # the episodes' recipe
-    trainer = Trainer(random_scene(n, seed=0, sh_degree=config.sh_degree), cams, images, config,
-                      render_settings=RenderSettings(backend=backend))
-    if steps * repeats + 2 >= config.densify.start:
-        raise ValueError(f"--steps x --repeats must stay below the densification start "
-                         f"({config.densify.start})")
-    for _ in range(2):
-        trainer.train_step()
-    rates = []
+    config = config.with_changes(densify=replace(config.densify, start=10 ** 9))  # N stays fixed
+    return Trainer(random_scene(n, seed=0, sh_degree=config.sh_degree), cams, images, config,
+                   render_settings=RenderSettings(backend="auto"))
+
+
+def iterations_per_second(backends: list[str], size: int, n: int, steps: int,
+                          repeats: int) -> dict[str, tuple[float, float]]:
+    """Per backend variant: (median over ``repeats`` interleaved blocks of ``steps`` iterations,
+    after 5 warm-up iterations, in it/s; the peak RSS in MB over its warm-up iterations)."""
+    trainers, peaks = {b: _trainer(size, n) for b in backends}, {}
+    for backend in backends:
+        reset_peak_rss()
+        with backend_variant(backend):
+            for _ in range(5):
+                trainers[backend].train_step()
+        peaks[backend] = peak_rss_mb()
+    rates: dict[str, list[float]] = {b: [] for b in backends}
     for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(steps):
-            trainer.train_step()
-        rates.append(steps / (time.perf_counter() - start))
-    return statistics.median(rates)
+        for backend in backends:
+            with backend_variant(backend):
+                start = time.perf_counter()
+                for _ in range(steps):
+                    trainers[backend].train_step()
+                rates[backend].append(steps / (time.perf_counter() - start))
+    return {b: (statistics.median(rates[b]), peaks[b]) for b in backends}
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m pipeline.bench train", description=__doc__)
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--gaussians", type=int, default=10000)
-    parser.add_argument("--steps", type=int, default=20, help="iterations per timed block")
-    parser.add_argument("--repeats", type=int, default=4)  # 2 + 20 x 4 < densify.start (100)
+    parser.add_argument("--steps", type=int, default=50, help="iterations per timed block")
+    parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--backends", nargs="+", default=["tiles", "compiled-unfused", "compiled"],
                         choices=BACKEND_VARIANTS,
                         help="compiled-unfused: the compiled ops without the fused training "
                              "render (the path before it), for a before/after in one process")
     args = parser.parse_args(argv)
-    rates = {}
-    for backend in args.backends:
-        reset_peak_rss()
-        with backend_variant(backend):
-            rate = iterations_per_second("auto", args.size, args.gaussians, args.steps, args.repeats)
-        rates[backend] = (rate, peak_rss_mb())
+    rates = iterations_per_second(args.backends, args.size, args.gaussians, args.steps,
+                                  args.repeats)
     for backend, (rate, peak) in rates.items():
         print(json.dumps({"backend": backend, "width": args.size, "n_gaussians": args.gaussians,
                           "its_per_s": round(rate, 2),
