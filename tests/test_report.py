@@ -300,3 +300,30 @@ def test_a_sweep_gets_one_qualitative_grid_per_scene_from_its_first_seed_and_set
     chosen = grid_images(sweep, pd.DataFrame(rows), "renders", "bonsai")
     shades = {m: int(np.asarray(Image.open(f[0]))[0, 8, 0]) for m, f in chosen.items()}
     assert shades == {"gopre": 150, "random": 150}  # bonsai, seed 0, the first setting (global)
+
+
+def test_each_methods_selection_cpu_time_is_tabled_beside_its_quality(tmp_path):
+    """Mean over rounds is in the final row; the table is the mean over scenes then seeds, per
+    dataset, lower ranked better; a sweep with no selection times gets no such table."""
+    rows = []
+    cpu = {("gopre", 0): (4.0, 6.0), ("gopre", 1): (5.0, 7.0), ("cover", 0): (1.0, 2.0),
+           ("cover", 1): (3.0, 2.0)}
+    for (method, seed), (lego, chair) in cpu.items():
+        rows.append(final_row(method, "blender", "lego", seed, 25.0, 0.9, selection_cpu_seconds=lego))
+        rows.append(final_row(method, "blender", "chair", seed, 24.0, 0.9, selection_cpu_seconds=chair))
+    rows.append(final_row("random", "blender", "lego", 0, 20.0, 0.9, selection_cpu_seconds=0.001))
+    rows += [{**r, "kind": "round", "num_views": n, "psnr": r["psnr"] - 4 + n}
+             for r in list(rows) for n in (2, 3)]  # the curves the paired tables read
+    frame = pd.DataFrame(rows)
+    path = tmp_path / "records.parquet"
+    frame.to_parquet(path)
+    make_report(path, tmp_path / "out")
+    table = (tmp_path / "out" / "table.md").read_text()
+    section = table[table.index("selection CPU seconds per round"):]
+    assert "| gopre | _5.50 ± 0.71_ |" in section  # seeds: (4 + 6) / 2 = 5, (5 + 7) / 2 = 6
+    assert "| cover | <ins>2.00 ± 0.71</ins> |" in section  # 1.5 and 2.5
+    assert "| random | **0.00** |" in section
+    assert "\\begin{tabular}" in (tmp_path / "out" / "table.tex").read_text()
+    frame.drop(columns="selection_cpu_seconds").to_parquet(path)
+    make_report(path, tmp_path / "plain")
+    assert "selection CPU" not in (tmp_path / "plain" / "table.md").read_text()

@@ -143,6 +143,7 @@ def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None
         table = build_table(final.rename(columns={"method": "Method"}), title, "Method", "dataset",
                             ["psnr", "psnr_auc", "ssim", "lpips"], methods)
         tables.append(table)
+        tables += selection_time_table(final, title, methods)
     note = missing_ssim_note(final)
     if note:
         table.notes.append(note)
@@ -152,6 +153,21 @@ def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None
                            f"more than 3 dB below the last round's on the same views): "
                            + "; ".join(bad))
     return tables + paired_tables(final, title, methods, settings, reference)
+
+
+def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) -> list[Table]:
+    """Each method's selection cost beside its quality: the CPU seconds of one round's selection
+    (mean over the episode's rounds, then over seeds), per dataset. CPU time, not wall time: jobs
+    that share the cores do not inflate it. None when no method selected (random only)."""
+    if "selection_cpu_seconds" not in final or final["selection_cpu_seconds"].isna().all():
+        return []
+    table = build_table(final.rename(columns={"method": "Method"}),
+                        f"{title}: selection CPU seconds per round", "Method", "dataset",
+                        ["selection_cpu_seconds"], methods)
+    table.notes.append("Lower is better. The CPU time of a round's selection (scoring every "
+                       "candidate), mean over the episode's rounds, then mean ± std over seeds; "
+                       "unlike wall time, other jobs on the same cores do not inflate it.")
+    return [table]
 
 
 def paired_tables(final: pd.DataFrame, title: str, methods: list[str], settings: list[str],

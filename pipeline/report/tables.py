@@ -17,11 +17,13 @@ import pandas as pd
 
 from pipeline.report.stats import verdict
 
-LOWER_IS_BETTER = {"lpips", "per_candidate_ms", "selection_seconds", "ause", "wall_seconds"}
+LOWER_IS_BETTER = {"lpips", "per_candidate_ms", "selection_seconds", "selection_cpu_seconds",
+                   "ause", "wall_seconds"}
 METRIC_LABELS = {"psnr": "PSNR", "psnr_auc": "PSNR area", "ssim": "SSIM", "ssim_skimage": "SSIM (skimage)", "lpips": "LPIPS", "per_candidate_ms": "Per-cand. (ms)",
-                 "selection_seconds": "Selection (s)", "ause": "AUSE", "wall_seconds": "Wall (s)"}
+                 "selection_seconds": "Selection (s)", "selection_cpu_seconds": "Selection CPU (s / round)",
+                 "ause": "AUSE", "wall_seconds": "Wall (s)"}
 DIGITS = {"psnr": 2, "psnr_auc": 2, "ssim": 3, "ssim_skimage": 3, "lpips": 3, "per_candidate_ms": 1, "selection_seconds": 2, "ause": 3,
-          "wall_seconds": 0}
+          "wall_seconds": 0, "selection_cpu_seconds": 2}
 MISSING = "n/a"
 
 
