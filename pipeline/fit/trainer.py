@@ -201,7 +201,7 @@ class Trainer:
 
     def _skip(self, view: int, loss: float) -> None:
         """Drop this step's gradients, count it, save what produced it; raise past the limit."""
-        self.optimizer.zero_grad(set_to_none=True)
+        self._clear_grads()
         self.nonfinite_steps += 1
         saved = self._save_nonfinite_case(view, loss)
         where = f"saved to {saved}" if saved else "not saved (no folder given)"
