@@ -143,6 +143,15 @@ def test_global_and_goal_protocols_on_blender_layout(generated):
     assert set(goal.probe_ids) <= train_inside
 
 
+def test_sparse_protocol_is_the_global_one_on_a_blender_layout(generated):
+    """The paper's Blender schedule is already 2 initial views + 8 picks, so Table 3's sparse
+    protocol gives a Blender-layout scene (the generated one included) the global episode view
+    for view: Tables 1 and 3 agree there by construction, not by chance."""
+    g = build_protocol(generated, ProtocolConfig("global"))
+    s = build_protocol(generated, ProtocolConfig("sparse"))
+    assert s == g
+
+
 def test_probes_come_from_all_training_views_in_the_manifold_initial_views_included(generated, bonsai):
     """The paper draws the K probes from every training view in the target manifold; the initial
     views are training views too (they are removed from the candidate pool, not from the probes)."""
