@@ -257,6 +257,25 @@ def test_compiled_projection_matches_torch_projection_values_and_gradients(sh_de
         assert rel(a, b) < 1e-10, name
 
 
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_projection_of_the_visible_colours_equals_the_full_projection_where_visible(dtype):
+    """The fused paths' projection computes the colour of visible Gaussians only; every other
+    output equals ``project_compiled``'s to the bit, and so does every visible colour."""
+    g, cams = projection_cases()
+    g = Gaussians(**{k: v.to(dtype) for k, v in g.params().items()})
+    full = compiled.project_compiled(g, cams.viewmats[0], cams.Ks[0], 60, 50, 3)
+    arrays = tuple(compiled.to_numpy(v) for v in g.params().values())
+    part = compiled.project_visible(arrays, cams.viewmats[0], cams.Ks[0], 60, 50, 3, 0.01, 1)
+    visible = full.radii > 0
+    assert visible.any() and (~visible).any()
+    for field in ("means2d", "conics", "depths", "radii", "opacities"):
+        assert getattr(part, field).dtype == getattr(full, field).dtype, field
+        assert torch.equal(getattr(part, field), getattr(full, field)), field
+    assert part.colors.dtype == dtype
+    assert torch.equal(part.colors[visible], full.colors[visible])
+    assert (part.colors[~visible] == 0).all() and (full.colors[~visible] != 0).any()
+
+
 @pytest.mark.parametrize("sh_degree", [None, 2])
 def test_compiled_feature_jacobian_matches_autograd(sh_degree):
     from pipeline.fisher.features import feature_jacobian, feature_jacobian_compiled
@@ -305,3 +324,21 @@ def test_a_one_thread_job_stays_on_one_thread():
     threads, cpu, wall = done.stdout.split()
     assert threads == "1"
     assert float(cpu) <= 1.1 * float(wall), f"CPU {cpu} s over wall {wall} s: another thread ran"
+
+
+def test_compact_row_sums_equal_the_dense_sums_bit_for_bit_and_a_brute_force_sum():
+    import numpy as np
+    kernels = compiled.load()
+    rng = np.random.default_rng(3)
+    n = 50
+    row_ids = rng.choice(np.arange(5, 40), size=300)  # Gaussians 0-4 and 40-49: no row
+    rows = rng.normal(size=(300, 7)) * 10.0 ** rng.integers(-8, 8, size=(300, 1))
+    ids, sums = kernels.sum_rows_compact(row_ids, rows, n)
+    assert np.array_equal(ids, np.unique(row_ids))
+    assert np.array_equal(sums, kernels.sum_rows(row_ids, rows, n, rows)[ids])
+    brute = np.zeros((n, 7))
+    for r, g in enumerate(row_ids):  # row order, one row at a time
+        brute[g] += rows[r]
+    assert np.array_equal(sums, brute[ids])
+    empty_ids, empty = kernels.sum_rows_compact(row_ids[:0], rows[:0], n)
+    assert empty_ids.shape == (0,) and empty.shape == (0, 7)

@@ -497,16 +497,12 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
 
     def one_view(c: int) -> SparseFisher:
         kernel_workers = compiled.use_threads()  # 1 when views run side by side
-        with torch.no_grad():  # grad mode is per thread
-            proj = compiled.project_compiled(g, cams.viewmats[c], cams.Ks[c], cams.width,
-                                             cams.height, spec.sh_degree, settings.near)
+        proj = compiled.project_visible(arrays, cams.viewmats[c], cams.Ks[c], cams.width,
+                                        cams.height, degree, settings.near, kernel_workers)
         row_ids, rows = _compiled_fisher_rows(proj, cams.width, cams.height, bg,
                                               settings.tile_size, spec.channel_summed,
                                               kernel_workers)
-        seen = np.zeros(n, dtype=np.bool_)
-        seen[row_ids] = True
-        ids = np.flatnonzero(seen)
-        sums = kernels.sum_rows(row_ids, rows, n, rows)[ids]
+        ids, sums = kernels.sum_rows_compact(row_ids, rows, n)
         out = np.empty((ids.shape[0], width))
         diagonal_kernels.fisher_diagonal(
             ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()),

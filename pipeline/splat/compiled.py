@@ -308,3 +308,19 @@ def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: 
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
         gaussians.sh0, gaussians.shN, camera)
     return Projection(means2d, conics, depths, radii, colors, opacities)
+
+
+def project_visible(arrays: tuple, viewmat: Tensor, K: Tensor, width: int, height: int,
+                    sh_degree: int, near: float, workers: int):
+    """``project_compiled``'s values without autograd, from the raw parameters as NumPy
+    ``arrays`` (means, log_scales, quats, logit_opacities, sh0, shN): a ``Projection`` whose culled
+    Gaussians (radius 0) have colour 0 (``project_forward``'s ``all_colors``), the outputs cast to
+    the parameters' dtype as ``project_compiled`` casts them."""
+    from pipeline.splat.project import Projection
+    np_dtype = arrays[0].dtype
+    camera = kernel_camera(viewmat, K, width, height, sh_degree, near)
+    means2d, conics, depths, radii, colors, opacities = projection_kernels().project_forward(
+        *arrays, *camera, workers, False)
+    return Projection(*(torch.from_numpy(x.astype(np_dtype, copy=False))
+                        for x in (means2d, conics, depths)), torch.from_numpy(radii),
+                      *(torch.from_numpy(x.astype(np_dtype, copy=False)) for x in (colors, opacities)))

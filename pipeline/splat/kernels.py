@@ -479,3 +479,28 @@ def sum_rows(row_ids, rows, n, like):
         for k in range(rows.shape[1]):
             out[g, k] += rows[r, k]
     return out.astype(like.dtype)
+
+
+@njit(cache=True, nogil=True)
+def sum_rows_compact(row_ids, rows, n):
+    """``sum_rows`` of only the Gaussians some row belongs to: (ids [M] sorted, sums [M, K]
+    float64), each Gaussian's rows added in row order (so every sum equals ``sum_rows``'s to the
+    bit) without the [n, K] block that is mostly zeros when few Gaussians are reached."""
+    slot = np.full(n, -1, dtype=np.int64)
+    for r in range(row_ids.shape[0]):
+        slot[row_ids[r]] = 0
+    m = 0
+    for g in range(n):
+        if slot[g] == 0:
+            slot[g] = m
+            m += 1
+    ids = np.empty(m, dtype=np.int64)
+    for g in range(n):
+        if slot[g] >= 0:
+            ids[slot[g]] = g
+    out = np.zeros((m, rows.shape[1]), dtype=np.float64)
+    for r in range(rows.shape[0]):
+        j = slot[row_ids[r]]
+        for k in range(rows.shape[1]):
+            out[j, k] += rows[r, k]
+    return ids, out

@@ -146,9 +146,13 @@ def _conic_terms(m):
 
 @njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
 def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width, height,
-                    sh_degree, near, workers):
+                    sh_degree, near, workers, all_colors=True):
     """Per Gaussian: means2d [N, 2], conics [N, 3], depths [N], radii [N] int64, colors [N, 3],
     opacities [N] (float64). view [4, 4] world->camera; intr = (fx, fy, cx, cy).
+    ``all_colors`` False: the SH colour only of the Gaussians with radius > 0, every culled one's
+    colour left 0 (no tile lists a culled Gaussian, so nothing composited reads it; at 64 px most
+    of a real scene's Gaussians are culled in any one view and the degree-3 SH is ~40% of the
+    projection).
 
     The Gaussians are cut into ``workers`` contiguous blocks, one per parallel iteration; each
     block's body is a plain function with its own scratch arrays (numba hoists ``np.empty`` out of
@@ -161,18 +165,19 @@ def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, i
     if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
         _forward_block(0, n, means, log_scales, quats,
                        logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
-                       means2d, conics, depths, radii, colors, opacities)
+                       all_colors, means2d, conics, depths, radii, colors, opacities)
     else:
         for w in prange(workers):
             _forward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
                            logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
-                           means2d, conics, depths, radii, colors, opacities)
+                           all_colors, means2d, conics, depths, radii, colors, opacities)
     return means2d, conics, depths, radii, colors, opacities
 
 
 @njit(cache=True, error_model="numpy")
 def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
-                   height, sh_degree, near, means2d, conics, depths, radii, colors, opacities):
+                   height, sh_degree, near, all_colors, means2d, conics, depths, radii, colors,
+                   opacities):
     bases = (sh_degree + 1) ** 2
     jac, rs, m = np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3))
     qn, rot, basis, d = np.empty(4), np.empty((3, 3)), np.empty(16), np.empty(3)
@@ -189,6 +194,10 @@ def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, 
         on_image = u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height
         if in_front and on_image and finite:
             radii[g] = int(radius)
+        opacities[g] = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
+        if not all_colors and radii[g] == 0:
+            colors[g, 0] = colors[g, 1] = colors[g, 2] = 0.0
+            continue
         # view direction camera centre -> Gaussian: m + W^T t, normalised
         for i in range(3):
             d[i] = means[g, i] + view[0, i] * view[0, 3] + view[1, i] * view[1, 3] + view[2, i] * view[2, 3]
@@ -199,7 +208,6 @@ def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, 
             for k in range(1, bases):
                 acc += basis[k] * shn[g, k - 1, ch]
             colors[g, ch] = max(acc + 0.5, 0.0)
-        opacities[g] = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
 
 
 @njit(parallel=PRANGE_ONLY, cache=True, nogil=True)

@@ -65,8 +65,9 @@ class _CompiledTrainingView(torch.autograd.Function):
         workers = compiled.use_threads()
         arrays = tuple(compiled.to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0,
                                                       shN))
-        means2d, conics, depths, radii, colors, opacities = pk.project_forward(*arrays, *camera,
-                                                                                 workers)
+        # culled Gaussians' colours are not computed: no tile lists them (``all_colors``)
+        means2d, conics, depths, radii, colors, opacities = pk.project_forward(
+            *arrays, *camera, workers, False)
         # the casts of ``render`` on the compiled backend: projection outputs in the params' dtype
         means2d, conics, depths = (x.astype(np_dtype) for x in (means2d, conics, depths))
         colors, opacities = colors.astype(np_dtype), opacities.astype(np_dtype)
