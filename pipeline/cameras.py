@@ -54,8 +54,13 @@ class Cameras:
         return Cameras(self.viewmats[index], self.Ks[index], self.width, self.height)
 
     def to(self, device=None, dtype=None) -> "Cameras":
-        return Cameras(self.viewmats.to(device=device, dtype=dtype),
-                       self.Ks.to(device=device, dtype=dtype), self.width, self.height)
+        """These cameras on ``device`` in ``dtype``; ``self`` when both already match (the record
+        is frozen, so sharing it is safe, and a training step does not re-validate its camera)."""
+        viewmats = self.viewmats.to(device=device, dtype=dtype)
+        Ks = self.Ks.to(device=device, dtype=dtype)
+        if viewmats is self.viewmats and Ks is self.Ks:
+            return self
+        return Cameras(viewmats, Ks, self.width, self.height)
 
     @property
     def centers(self) -> Tensor:

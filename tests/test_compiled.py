@@ -342,3 +342,43 @@ def test_compact_row_sums_equal_the_dense_sums_bit_for_bit_and_a_brute_force_sum
     assert np.array_equal(sums, brute[ids])
     empty_ids, empty = kernels.sum_rows_compact(row_ids[:0], rows[:0], n)
     assert empty_ids.shape == (0,) and empty.shape == (0, 7)
+
+
+@pytest.mark.parametrize("channel_summed", [False, True])
+def test_one_pass_walk_gives_the_fisher_rows_of_the_forward_then_backward_walks(channel_summed):
+    """``walk_fisher`` (forward and Fisher walks per tile, each pair's alpha kept) against the two
+    kernels it replaces (``composite_forward`` + ``walked_rows`` + ``fisher_rows``): the same walked
+    intersections and per-Gaussian sums to float rounding, with early termination, clamped alpha
+    and off-screen Gaussians; one thread and two give the same bits."""
+    import numpy as np
+    kernels = compiled.load()
+    cams = orbit_cameras(3, 30, 26, dtype=F64, radius=2.5)
+    g = with_hard_cases(random_scene(300, seed=7, sh_degree=2, dtype=F64,
+                                     opacity_range=(0.3, 0.999)), cams)
+    background = np.array([0.3, 0.6, 0.9])
+    for c in range(len(cams)):
+        proj = compiled.project_compiled(g, cams.viewmats[c], cams.Ks[c], 30, 26)
+        bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
+                                     proj.depths, 30, 26, 8)
+        colors = compiled.to_numpy(proj.colors.detach())
+        _, final, walked = bins.forward(np.empty((colors.shape[0], 0)), 1)
+        row_start, row_ids = bins.walked_rows(walked)
+        rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
+                                   bins.packed, colors, final, walked, background, bins.tiles_x,
+                                   8, channel_summed, 1)
+        want_ids, want = kernels.sum_rows_compact(row_ids, rows, len(g))
+        results = []
+        for workers in (1, 2):
+            longest, fused_rows = kernels.walk_fisher(
+                bins.gauss_ids, bins.offsets, bins.counts, bins.packed, colors, background, 30, 26,
+                bins.tiles_x, 8, channel_summed, workers)
+            assert np.array_equal(np.diff(np.append(row_start, row_ids.shape[0])), longest)
+            results.append(kernels.sum_walked_rows(bins.gauss_ids, bins.offsets, longest,
+                                                   fused_rows, len(g)))
+        (ids, got), (ids2, got2) = results
+        assert np.array_equal(ids, want_ids) and np.array_equal(ids, ids2)
+        assert np.array_equal(got, got2)
+        scale = np.abs(want).max(axis=0) + 1e-300
+        assert (np.abs(got - want) / scale).max() < 1e-12, c
+        if c == 0:  # the huge opaque Gaussian in front of camera 0 ends walks early
+            assert (longest < bins.counts).any(), "no walk ended early: the case is too easy"

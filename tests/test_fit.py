@@ -174,16 +174,18 @@ def test_a_non_finite_step_is_skipped_saved_counted_and_fails_past_the_limit(tmp
         imgs = render(g, cams).rgb
     t = Trainer(g, cams, imgs, tiny_preset(), nonfinite_dir=tmp_path)
     t.train_step()
-    real_loss = trainer_module.photometric_loss
     poisoned = {"on": "gradient"}
 
-    def loss_with_nan(image, target, weight):
-        loss = real_loss(image, target, weight)
-        if poisoned["on"] == "gradient":  # a finite loss whose gradient is NaN (0 * d sqrt(0))
-            return loss + 0 * (image.sum() * 0).sqrt()
-        return loss * float("nan") if poisoned["on"] else loss
+    def with_nan(real_loss):
+        def loss_with_nan(image, target, weight):
+            loss = real_loss(image, target, weight)
+            if poisoned["on"] == "gradient":  # a finite loss whose gradient is NaN (0 * d sqrt(0))
+                return loss + 0 * (image.sum() * 0).sqrt()
+            return loss * float("nan") if poisoned["on"] else loss
+        return loss_with_nan
 
-    monkeypatch.setattr(trainer_module, "photometric_loss", loss_with_nan)
+    for name in ("photometric_loss", "photometric_loss_compiled"):  # whichever the step takes
+        monkeypatch.setattr(trainer_module, name, with_nan(getattr(trainer_module, name)))
     before = {k: v.detach().clone() for k, v in t.params.items()}
     t.train_step()
     assert t.nonfinite_steps == 1
@@ -486,8 +488,62 @@ def test_a_steps_psnr_is_that_of_its_render_before_the_update_and_nan_when_skipp
             expected = psnr(rendered, imgs[view])
         assert info.psnr == pytest.approx(float(expected), abs=1e-4)
         assert all(p.grad is not None for p in t.params.values())
-    real_loss = trainer_module.photometric_loss
-    monkeypatch.setattr(trainer_module, "photometric_loss",
-                        lambda image, target, w: real_loss(image, target, w) * float("nan"))
+    for name in ("photometric_loss", "photometric_loss_compiled"):  # whichever the step takes
+        real_loss = getattr(trainer_module, name)
+        monkeypatch.setattr(trainer_module, name, lambda image, target, w, _real=real_loss:
+                            _real(image, target, w) * float("nan"))
     skipped = t.train_step()
     assert math.isnan(skipped.psnr) and math.isnan(skipped.loss)
+
+
+def _image_pair(dtype, seed=0, shape=(13, 17, 3)):
+    gen = torch.Generator().manual_seed(seed)
+    img = torch.rand(shape, generator=gen, dtype=dtype)
+    ref = (img + 0.3 * torch.rand(shape, generator=gen, dtype=dtype)).clamp(0, 1)
+    ref[0, 0] = img[0, 0]  # equal pixels: the L1 part's subgradient is 0 there, as torch's
+    return img, ref
+
+
+@pytest.mark.parametrize("weight", [0.2, 0.0, 1.0])
+def test_compiled_loss_is_the_torch_loss_value_and_gradient(weight):
+    from pipeline.fit.losses import photometric_loss_compiled
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-6)):
+        img, ref = _image_pair(dtype)
+        a = img.clone().requires_grad_()
+        b = img.clone().requires_grad_()
+        want = photometric_loss(a, ref, weight)
+        got = photometric_loss_compiled(b, ref, weight)
+        want.backward()
+        got.backward()
+        assert got.dtype == dtype and got.shape == ()
+        assert abs(float(got) - float(want)) < tol, dtype
+        assert b.grad.dtype == dtype
+        assert float((b.grad - a.grad).norm() / a.grad.norm()) < tol * 10, dtype
+
+
+def test_compiled_loss_gradient_against_finite_differences():
+    """Independent of the torch loss: central differences of the compiled value itself."""
+    from pipeline.fit.losses import photometric_loss_compiled
+    img, ref = _image_pair(torch.float64, seed=1, shape=(9, 11, 3))
+    img = img.clamp(0.05, 0.95)
+    ref = (ref + 0.02).clamp(0, 1)  # no pixel at the L1 kink
+    x = img.clone().requires_grad_()
+    photometric_loss_compiled(x, ref, 0.2).backward()
+    h = 1e-6
+    gen = torch.Generator().manual_seed(2)
+    for flat in torch.randint(0, img.numel(), (12,), generator=gen).tolist():
+        up, down = img.clone().reshape(-1), img.clone().reshape(-1)
+        up[flat] += h
+        down[flat] -= h
+        numeric = (photometric_loss_compiled(up.reshape(img.shape), ref, 0.2)
+                   - photometric_loss_compiled(down.reshape(img.shape), ref, 0.2)) / (2 * h)
+        assert abs(float(numeric) - float(x.grad.reshape(-1)[flat])) < 1e-7
+
+
+def test_compiled_loss_refuses_what_it_cannot_compute():
+    from pipeline.fit.losses import photometric_loss_compiled
+    img, ref = _image_pair(torch.float32)
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        photometric_loss_compiled(img[None], ref[None])
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        photometric_loss_compiled(img, ref[:-1])

@@ -80,6 +80,26 @@ def test_the_trainer_takes_the_fused_node_on_the_compiled_backend_only():
             training_view_generic
 
 
+def test_the_fused_step_trains_with_the_compiled_loss_and_the_others_with_the_torch_ops(monkeypatch):
+    import pipeline.fit.trainer as trainer_module
+    calls = []
+    for name in ("photometric_loss", "photometric_loss_compiled"):
+        original = getattr(trainer_module, name)
+        monkeypatch.setattr(trainer_module, name,
+                            lambda *a, _f=original, _n=name, **k: calls.append(_n) or _f(*a, **k))
+    cams = orbit_cameras(2, 16, 12)
+    images = torch.rand(2, 12, 16, 3)
+    for backend, fused, want in (("compiled", True, "photometric_loss_compiled"),
+                                 ("compiled", False, "photometric_loss"),
+                                 ("tiles", True, "photometric_loss")):
+        calls.clear()
+        with fused_paths(fused):
+            Trainer(random_scene(50, seed=0, sh_degree=0), cams, images,
+                    FitConfig(iterations=2, sh_degree=0),
+                    render_settings=RenderSettings(backend=backend)).train(2)
+        assert calls == [want, want], (backend, fused)
+
+
 def test_fused_and_unfused_training_agree_through_densification():
     """60 steps with densification every 10 from step 20: the same Gaussians and parameters."""
     cams = orbit_cameras(4, 24, 20)

@@ -477,8 +477,10 @@ class SparseFisher:
 def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | None,
                  spec: FisherSpec, settings: RenderSettings):
     """Yield one ``SparseFisher`` per camera by the fused compiled path (``diagonal_kernels``):
-    projection, walk and Fisher rows as ``feature_fisher_compiled``, the rows summed per Gaussian,
-    then diag(A^T G A) of the reached Gaussians written by one kernel. Several cameras are computed
+    the projection of the visible Gaussians, the forward and Fisher walks tile by tile in one
+    kernel (``kernels.walk_fisher``: the Fisher rows of ``feature_fisher_compiled`` without
+    recomputing each pair), the rows summed per Gaussian, then diag(A^T G A) of the reached
+    Gaussians written by one kernel. Several cameras are computed
     side by side, one per thread (``compiled.map_in_threads``); one camera splits its kernels over
     the threads instead. Either way each view's numbers are the same."""
     from pipeline.fisher import diagonal_kernels
@@ -494,15 +496,19 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
     g = gaussians.detach()
     n, degree = len(g), active_sh_degree(g, spec.sh_degree)
     arrays = [compiled.to_numpy(v) for v in g.params().values()]
+    background = compiled.to_numpy(bg.double())
 
     def one_view(c: int) -> SparseFisher:
         kernel_workers = compiled.use_threads()  # 1 when views run side by side
         proj = compiled.project_visible(arrays, cams.viewmats[c], cams.Ks[c], cams.width,
                                         cams.height, degree, settings.near, kernel_workers)
-        row_ids, rows = _compiled_fisher_rows(proj, cams.width, cams.height, bg,
-                                              settings.tile_size, spec.channel_summed,
-                                              kernel_workers)
-        ids, sums = kernels.sum_rows_compact(row_ids, rows, n)
+        bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
+                                     proj.depths, cams.width, cams.height, settings.tile_size)
+        longest, rows = kernels.walk_fisher(bins.gauss_ids, bins.offsets, bins.counts, bins.packed,
+                                            compiled.to_numpy(proj.colors), background, cams.width,
+                                            cams.height, bins.tiles_x, settings.tile_size,
+                                            spec.channel_summed, kernel_workers)
+        ids, sums = kernels.sum_walked_rows(bins.gauss_ids, bins.offsets, longest, rows, n)
         out = np.empty((ids.shape[0], width))
         diagonal_kernels.fisher_diagonal(
             ids, sums, *arrays, compiled.to_numpy(cams.viewmats[c].double()),

@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 
 def _window(size: int, sigma: float, channels: int, like: Tensor) -> Tensor:
-    x = torch.arange(size, dtype=like.dtype, device=like.device) - (size - 1) / 2
+    """The [channels, 1, size, size] Gaussian window in ``like``'s dtype and device (cached: a
+    training step asks for the same one every time)."""
+    return _window_cached(size, float(sigma), channels, like.dtype, like.device)
+
+
+@functools.lru_cache(maxsize=16)
+def _window_cached(size: int, sigma: float, channels: int, dtype: torch.dtype,
+                   device: torch.device) -> Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
     g = torch.exp(-(x * x) / (2 * sigma * sigma))
     g = g / g.sum()
     return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
@@ -42,3 +52,40 @@ def psnr(img: Tensor, ref: Tensor) -> Tensor:
     """PSNR in dB of images in [0, 1] (mean squared error over all pixels and channels)."""
     mse = (img.clamp(0, 1) - ref).square().mean()
     return -10 * torch.log10(mse.clamp_min(1e-20))
+
+
+class _CompiledPhotometricLoss(torch.autograd.Function):
+    """``photometric_loss`` of one [H, W, 3] CPU image as one autograd node: value and gradient
+    from one compiled pass (``loss_kernels``), in float64, cast to the image's dtype."""
+
+    @staticmethod
+    def forward(ctx, img, ref, ssim_weight):
+        from pipeline.fit import loss_kernels
+        value, grad = loss_kernels.photometric_value_and_grad(
+            img.detach().contiguous().numpy(), ref.detach().contiguous().numpy(),
+            float(ssim_weight), _taps(11, 1.5))
+        ctx.grad = torch.from_numpy(grad).to(img.dtype)
+        return img.new_tensor(value)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        return grad_out * ctx.grad, None, None
+
+
+@functools.lru_cache(maxsize=4)
+def _taps(size: int, sigma: float):
+    from pipeline.fit import loss_kernels
+    return loss_kernels.gaussian_taps(size, sigma)
+
+
+def photometric_loss_compiled(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tensor:
+    """``photometric_loss`` of an [H, W, 3] image on the CPU by the compiled kernel (value and
+    gradient in one pass; ~4x faster than the ~40 torch ops at 64 px). The same loss to float
+    rounding: float64 inside, so in float32 it differs from the torch ops' float32 rounding (tests
+    compare both, and the float64 value to 1e-12). The reference needs no gradient."""
+    if img.dim() != 3 or img.shape[-1] != 3 or img.shape != ref.shape:
+        raise ValueError(f"photometric_loss_compiled: img and ref must be one [H, W, 3] image, "
+                         f"got {tuple(img.shape)} and {tuple(ref.shape)}")
+    if img.device.type != "cpu":
+        raise ValueError(f"photometric_loss_compiled runs on CPU tensors, got {img.device}")
+    return _CompiledPhotometricLoss.apply(img, ref, ssim_weight)

@@ -22,10 +22,10 @@ from tqdm.auto import tqdm
 from pipeline.cameras import Cameras
 from pipeline.fit.config import FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
-from pipeline.fit.losses import photometric_loss, psnr
+from pipeline.fit.losses import photometric_loss, photometric_loss_compiled, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
 from pipeline.splat.gaussians import all_finite
-from pipeline.splat.training_view import training_view_renderer
+from pipeline.splat.training_view import fused_training_step, training_view_renderer
 
 
 NONFINITE_STEP_LIMIT = 10
@@ -174,7 +174,10 @@ class Trainer:
         out = renderer(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
                        self.settings)
         image = out.image
-        loss = photometric_loss(image, target, cfg.ssim_weight)
+        # the fused step's loss is one compiled node; otherwise the torch ops (its oracle)
+        loss_fn = (photometric_loss_compiled if fused_training_step(self.settings, image.device)
+                   else photometric_loss)
+        loss = loss_fn(image, target, cfg.ssim_weight)
         self._clear_grads()
         loss.backward()
         if not self._finite(loss):

@@ -86,10 +86,10 @@ def auto_backend(name: str):
 
 @contextmanager
 def fused_paths(enabled: bool):
-    """Within the block, the fused compiled paths (the training step's one-node render, the
-    Fisher's per-view diagonal and the compiled scores) are used when ``enabled`` (the default
-    outside any block), else the unfused compiled ops they replace: how ``bench episode`` times
-    both in one process and how the tests compare them."""
+    """Within the block, the fused compiled paths (the training step's one-node render and its
+    compiled loss, the Fisher's per-view diagonal and the compiled scores) are used when
+    ``enabled`` (the default outside any block), else the unfused compiled ops they replace: how
+    ``bench episode`` times both in one process and how the tests compare them."""
     before = _STATE.get("fused", True)
     _STATE["fused"] = bool(enabled)
     try:

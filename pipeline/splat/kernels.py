@@ -504,3 +504,154 @@ def sum_rows_compact(row_ids, rows, n):
         for k in range(rows.shape[1]):
             out[j, k] += rows[r, k]
     return ids, out
+
+
+@njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
+def _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background, width, height,
+                      tiles_x, tile_size, channel_summed, alphas, rows_out):
+    """One tile's forward walk and Fisher walk back to back (``_forward_tile`` without features,
+    then ``_fisher_tile``): the forward keeps each composited pair's alpha in ``alphas``
+    [>= counts[t], tile_size^2] (0 for a pair it skipped or never reached), so the walk back reads
+    it instead of recomputing the pair (its exponential), and no pixel needs a walked length:
+    a zero alpha is a pair the pixel never composited. Rows go to rows_out[offsets[t] + j];
+    returns the tile's walked length (the rows written are j < it)."""
+    xs = np.empty(tile_size * tile_size, dtype=np.int64)
+    ys = np.empty(tile_size * tile_size, dtype=np.int64)
+    npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
+    px, py = xs[:npix] + 0.5, ys[:npix] + 0.5
+    trans = np.ones(npix)
+    done = np.zeros(npix, dtype=np.bool_)
+    ndone, longest = 0, 0
+    start, count = offsets[t], counts[t]
+    for j in range(count):
+        row = packed[gauss_ids[start + j]]
+        for p in range(npix):
+            alphas[j, p] = 0.0
+            if done[p]:
+                continue
+            alpha, _, _, _, _ = _pair(px[p], py[p], row)
+            if alpha == 0.0:
+                continue
+            after = trans[p] * (1.0 - alpha)
+            if after < T_MIN:
+                done[p] = True
+                ndone += 1
+                continue
+            alphas[j, p] = alpha
+            trans[p] = after
+            longest = j + 1
+        if ndone == npix:
+            break
+    suffix = np.empty((npix, 3))
+    for p in range(npix):
+        for c in range(3):
+            suffix[p, c] = trans[p] * background[c]
+    h = np.empty(6)
+    s = np.empty(3)
+    local = np.empty(FISHER_ROW)
+    for j in range(longest - 1, -1, -1):
+        g = gauss_ids[start + j]
+        row = packed[g]
+        local[:] = 0.0
+        h[5] = 1.0 / row[5]
+        for p in range(npix):
+            alpha = alphas[j, p]
+            if alpha == 0.0:
+                continue
+            live = alpha < ALPHA_MAX  # ``_pair`` clamps at ALPHA_MAX exactly when not live
+            dx, dy = px[p] - row[0], py[p] - row[1]
+            tr = trans[p] / (1.0 - alpha)
+            trans[p] = tr
+            w = alpha * tr
+            odds = alpha / (1.0 - alpha)
+            total, summed = 0.0, 0.0
+            for c in range(3):
+                s[c] = (w * colors[g, c] - odds * suffix[p, c]) if live else 0.0
+                suffix[p, c] += w * colors[g, c]
+                total += s[c] * s[c]
+                summed += s[c]
+            if channel_summed:
+                total = summed * summed
+            h[0] = row[2] * dx + row[3] * dy
+            h[1] = row[3] * dx + row[4] * dy
+            h[2] = -0.5 * dx * dx
+            h[3] = -dx * dy
+            h[4] = -0.5 * dy * dy
+            k = 0
+            for a in range(6):
+                sh = total * h[a]
+                for b in range(a, 6):
+                    local[k] += sh * h[b]
+                    k += 1
+            for a in range(6):
+                for c in range(3):
+                    local[21 + 3 * a + c] += s[c] * w * h[a]
+            local[39] += w * w
+        out = rows_out[start + j]
+        for k in range(FISHER_ROW):
+            out[k] = local[k]
+    return longest
+
+
+@njit(cache=True, nogil=True)
+def _walk_fisher_tiles(first, step, gauss_ids, offsets, counts, packed, colors, background, width,
+                       height, tiles_x, tile_size, channel_summed, longest, rows):
+    """Tiles first, first + step, ... of ``walk_fisher``, with an alpha buffer of their own."""
+    most = 0
+    for t in range(first, offsets.shape[0], step):
+        most = max(most, counts[t])
+    alphas = np.empty((most, tile_size * tile_size))
+    for t in range(first, offsets.shape[0], step):
+        longest[t] = _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background,
+                                       width, height, tiles_x, tile_size, channel_summed, alphas,
+                                       rows)
+
+
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
+def walk_fisher(gauss_ids, offsets, counts, packed, colors, background, width, height, tiles_x,
+                tile_size, channel_summed, workers):
+    """``composite_forward`` (transmittance only), ``walked_rows`` and ``fisher_rows`` of one view
+    in one pass, tile by tile (``_walk_fisher_tile``; the tiles interleaved over ``workers``).
+    Returns (longest [T], rows [I, 40]): the Fisher rows of the intersections offsets[t] + j for
+    j < longest[t] (the walked ones; the other rows are unset). The same rows as ``fisher_rows``
+    to float rounding (the pair's alpha is kept, not recomputed)."""
+    num_tiles = offsets.shape[0]
+    rows = np.empty((gauss_ids.shape[0], FISHER_ROW))
+    longest = np.zeros(num_tiles, dtype=np.int64)
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        _walk_fisher_tiles(0, 1, gauss_ids, offsets, counts, packed, colors, background, width,
+                           height, tiles_x, tile_size, channel_summed, longest, rows)
+    else:
+        for worker in prange(workers):
+            _walk_fisher_tiles(worker, workers, gauss_ids, offsets, counts, packed, colors,
+                               background, width, height, tiles_x, tile_size, channel_summed,
+                               longest, rows)
+    return longest, rows
+
+
+@njit(cache=True, nogil=True)
+def sum_walked_rows(gauss_ids, offsets, longest, rows, n):
+    """``sum_rows_compact`` of ``walk_fisher``'s rows: (ids [M] sorted, sums [M, K]) over the
+    walked intersections (offsets[t] + j, j < longest[t]), each Gaussian's rows added in tile
+    order, the order of ``walked_rows``."""
+    slot = np.full(n, -1, dtype=np.int64)
+    for t in range(offsets.shape[0]):
+        for j in range(longest[t]):
+            slot[gauss_ids[offsets[t] + j]] = 0
+    m = 0
+    for g in range(n):
+        if slot[g] == 0:
+            slot[g] = m
+            m += 1
+    ids = np.empty(m, dtype=np.int64)
+    for g in range(n):
+        if slot[g] >= 0:
+            ids[slot[g]] = g
+    out = np.zeros((m, rows.shape[1]), dtype=np.float64)
+    for t in range(offsets.shape[0]):
+        for j in range(longest[t]):
+            r = offsets[t] + j
+            i = slot[gauss_ids[r]]
+            for k in range(rows.shape[1]):
+                out[i, k] += rows[r, k]
+    return ids, out

@@ -69,8 +69,10 @@ class _CompiledTrainingView(torch.autograd.Function):
         means2d, conics, depths, radii, colors, opacities = pk.project_forward(
             *arrays, *camera, workers, False)
         # the casts of ``render`` on the compiled backend: projection outputs in the params' dtype
-        means2d, conics, depths = (x.astype(np_dtype) for x in (means2d, conics, depths))
-        colors, opacities = colors.astype(np_dtype), opacities.astype(np_dtype)
+        # (the kernel already writes them in the parameters' dtype: no copy then)
+        means2d, conics, depths = (x.astype(np_dtype, copy=False) for x in (means2d, conics, depths))
+        colors = colors.astype(np_dtype, copy=False)
+        opacities = opacities.astype(np_dtype, copy=False)
         _, _, width, height, _, _ = camera
         bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width, height,
                                      tile_size)
@@ -128,6 +130,12 @@ def training_view_compiled(gaussians: Gaussians, camera: Cameras, background: Te
 def training_view_renderer(settings: RenderSettings, device: torch.device):
     """The twin for ``settings.backend`` on ``device``: fused when it resolves to ``compiled``
     (and ``compiled.fused_paths`` has not turned the fused paths off)."""
-    if compiled.resolve_backend(settings.backend, device) == "compiled" and compiled.fused_enabled():
+    if fused_training_step(settings, device):
         return training_view_compiled
     return training_view_generic
+
+
+def fused_training_step(settings: RenderSettings, device: torch.device) -> bool:
+    """Whether a training step on ``device`` takes the fused compiled paths: the one-node render
+    (``training_view_compiled``) and the compiled loss (``fit.losses.photometric_loss_compiled``)."""
+    return compiled.resolve_backend(settings.backend, device) == "compiled" and compiled.fused_enabled()
