@@ -326,21 +326,25 @@ def test_a_one_thread_job_stays_on_one_thread():
     assert float(cpu) <= 1.1 * float(wall), f"CPU {cpu} s over wall {wall} s: another thread ran"
 
 
-def test_compact_row_sums_equal_the_dense_sums_bit_for_bit_and_a_brute_force_sum():
+def test_walked_row_sums_equal_the_dense_sums_bit_for_bit_and_a_brute_force_sum():
     import numpy as np
     kernels = compiled.load()
     rng = np.random.default_rng(3)
-    n = 50
-    row_ids = rng.choice(np.arange(5, 40), size=300)  # Gaussians 0-4 and 40-49: no row
-    rows = rng.normal(size=(300, 7)) * 10.0 ** rng.integers(-8, 8, size=(300, 1))
-    ids, sums = kernels.sum_rows_compact(row_ids, rows, n)
-    assert np.array_equal(ids, np.unique(row_ids))
-    assert np.array_equal(sums, kernels.sum_rows(row_ids, rows, n, rows)[ids])
+    n, tiles = 50, 12
+    counts = rng.integers(0, 40, size=tiles)
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    longest = rng.integers(0, counts + 1)  # the walked prefix of each tile's list
+    gauss_ids = rng.choice(np.arange(5, 40), size=counts.sum())  # 0-4 and 40-49: never listed
+    rows = rng.normal(size=(counts.sum(), 7)) * 10.0 ** rng.integers(-8, 8, size=(counts.sum(), 1))
+    walked = np.concatenate([offsets[t] + np.arange(longest[t]) for t in range(tiles)])
+    ids, sums = kernels.sum_walked_rows(gauss_ids, offsets, longest, rows, n)
+    assert np.array_equal(ids, np.unique(gauss_ids[walked]))
+    assert np.array_equal(sums, kernels.sum_rows(gauss_ids[walked], rows[walked], n, rows)[ids])
     brute = np.zeros((n, 7))
-    for r, g in enumerate(row_ids):  # row order, one row at a time
-        brute[g] += rows[r]
+    for r in walked:  # row order, one row at a time
+        brute[gauss_ids[r]] += rows[r]
     assert np.array_equal(sums, brute[ids])
-    empty_ids, empty = kernels.sum_rows_compact(row_ids[:0], rows[:0], n)
+    empty_ids, empty = kernels.sum_walked_rows(gauss_ids, offsets, np.zeros_like(longest), rows, n)
     assert empty_ids.shape == (0,) and empty.shape == (0, 7)
 
 
@@ -366,7 +370,8 @@ def test_one_pass_walk_gives_the_fisher_rows_of_the_forward_then_backward_walks(
         rows = kernels.fisher_rows(bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0],
                                    bins.packed, colors, final, walked, background, bins.tiles_x,
                                    8, channel_summed, 1)
-        want_ids, want = kernels.sum_rows_compact(row_ids, rows, len(g))
+        want_ids = np.unique(row_ids)
+        want = kernels.sum_rows(row_ids, rows, len(g), rows)[want_ids]
         results = []
         for workers in (1, 2):
             longest, fused_rows = kernels.walk_fisher(

@@ -177,11 +177,8 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
                            "selection_cpu_seconds", *(SEARCH_METRICS if "world.kind" in params else ()))}
     if version < 2:
         history["test_ssim_skimage"], history["test_ssim"] = history["test_ssim"], {}
-    picks = list(history["per_candidate_ms"].values())
-    final["per_candidate_ms"] = sum(picks) / len(picks) if picks else None
-    sel = list(history["selection_seconds"].values())
-    final["selection_seconds"] = sum(sel) / len(sel) if sel else None
-    final["selection_cpu_seconds"] = _mean_present(list(history["selection_cpu_seconds"].values()))
+    for key in ("per_candidate_ms", "selection_seconds", "selection_cpu_seconds"):  # over the picks
+        final[key] = _mean_present(list(history[key].values()))
     rounds = [{**base, "kind": "round", "num_views": step, "psnr": value,
                "ssim": history["test_ssim"].get(step), "ssim_skimage": history["test_ssim_skimage"].get(step),
                **_search_columns(history, step)}

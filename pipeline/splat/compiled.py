@@ -310,17 +310,21 @@ def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: 
     return Projection(means2d, conics, depths, radii, colors, opacities)
 
 
+def project_visible_arrays(arrays: tuple, camera: tuple, workers: int) -> tuple:
+    """``project_forward`` of the raw parameters as NumPy ``arrays`` (means, log_scales, quats,
+    logit_opacities, sh0, shN) for ``camera`` (``kernel_camera``) with the colour of visible
+    Gaussians only (``all_colors`` False: a culled one's is 0, and no tile lists it): (means2d,
+    conics, depths, radii, colors, opacities), in the parameters' dtype as ``project_compiled``
+    casts them (the kernel writes them in it already, so no copy)."""
+    np_dtype = arrays[0].dtype
+    outs = projection_kernels().project_forward(*arrays, *camera, workers, False)
+    return tuple(x if x.dtype == np.int64 else x.astype(np_dtype, copy=False) for x in outs)
+
+
 def project_visible(arrays: tuple, viewmat: Tensor, K: Tensor, width: int, height: int,
                     sh_degree: int, near: float, workers: int):
-    """``project_compiled``'s values without autograd, from the raw parameters as NumPy
-    ``arrays`` (means, log_scales, quats, logit_opacities, sh0, shN): a ``Projection`` whose culled
-    Gaussians (radius 0) have colour 0 (``project_forward``'s ``all_colors``), the outputs cast to
-    the parameters' dtype as ``project_compiled`` casts them."""
+    """``project_compiled``'s values without autograd (``project_visible_arrays``) as a
+    ``Projection``; culled Gaussians (radius 0) have colour 0."""
     from pipeline.splat.project import Projection
-    np_dtype = arrays[0].dtype
     camera = kernel_camera(viewmat, K, width, height, sh_degree, near)
-    means2d, conics, depths, radii, colors, opacities = projection_kernels().project_forward(
-        *arrays, *camera, workers, False)
-    return Projection(*(torch.from_numpy(x.astype(np_dtype, copy=False))
-                        for x in (means2d, conics, depths)), torch.from_numpy(radii),
-                      *(torch.from_numpy(x.astype(np_dtype, copy=False)) for x in (colors, opacities)))
+    return Projection(*(torch.from_numpy(x) for x in project_visible_arrays(arrays, camera, workers)))

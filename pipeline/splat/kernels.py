@@ -373,6 +373,41 @@ def composite_backward(gauss_ids, offsets, row_start, num_rows, packed, features
     return grads
 
 
+@njit(cache=True, inline="always", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
+def _fisher_pair(p, g, row, alpha, live, dx, dy, colors, channel_summed, trans, suffix, h, s,
+                 local):
+    """One (pixel p, Gaussian g) pair of the walk back to front: recover the transmittance before g
+    (trans[p] / (1 - alpha)), add g's colour to what lies behind (suffix), and add the pair's terms
+    to the Fisher row ``local`` [40] (``fisher_rows``). h[5] = 1 / opacity is the caller's."""
+    tr = trans[p] / (1.0 - alpha)
+    trans[p] = tr
+    w = alpha * tr
+    odds = alpha / (1.0 - alpha)
+    total, summed = 0.0, 0.0
+    for c in range(3):
+        s[c] = (w * colors[g, c] - odds * suffix[p, c]) if live else 0.0
+        suffix[p, c] += w * colors[g, c]
+        total += s[c] * s[c]
+        summed += s[c]
+    if channel_summed:
+        total = summed * summed
+    h[0] = row[2] * dx + row[3] * dy
+    h[1] = row[3] * dx + row[4] * dy
+    h[2] = -0.5 * dx * dx
+    h[3] = -dx * dy
+    h[4] = -0.5 * dy * dy
+    k = 0
+    for a in range(6):
+        sh = total * h[a]
+        for b in range(a, 6):
+            local[k] += sh * h[b]
+            k += 1
+    for a in range(6):
+        for c in range(3):
+            local[21 + 3 * a + c] += s[c] * w * h[a]
+    local[39] += w * w
+
+
 @njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
 def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked, background,
                  tiles_x, tile_size, channel_summed, rows_out):
@@ -409,33 +444,8 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
             alpha, live, dx, dy, _ = _pair(px[p], py[p], row)
             if alpha == 0.0:
                 continue
-            tr = trans[p] / (1.0 - alpha)
-            trans[p] = tr
-            w = alpha * tr
-            odds = alpha / (1.0 - alpha)
-            total, summed = 0.0, 0.0
-            for c in range(3):
-                s[c] = (w * colors[g, c] - odds * suffix[p, c]) if live else 0.0
-                suffix[p, c] += w * colors[g, c]
-                total += s[c] * s[c]
-                summed += s[c]
-            if channel_summed:
-                total = summed * summed
-            h[0] = row[2] * dx + row[3] * dy
-            h[1] = row[3] * dx + row[4] * dy
-            h[2] = -0.5 * dx * dx
-            h[3] = -dx * dy
-            h[4] = -0.5 * dy * dy
-            k = 0
-            for a in range(6):
-                sh = total * h[a]
-                for b in range(a, 6):
-                    local[k] += sh * h[b]
-                    k += 1
-            for a in range(6):
-                for c in range(3):
-                    local[21 + 3 * a + c] += s[c] * w * h[a]
-            local[39] += w * w
+            _fisher_pair(p, g, row, alpha, live, dx, dy, colors, channel_summed, trans, suffix,
+                         h, s, local)
         out = rows_out[rows + j]
         for k in range(FISHER_ROW):
             out[k] = local[k]
@@ -479,31 +489,6 @@ def sum_rows(row_ids, rows, n, like):
         for k in range(rows.shape[1]):
             out[g, k] += rows[r, k]
     return out.astype(like.dtype)
-
-
-@njit(cache=True, nogil=True)
-def sum_rows_compact(row_ids, rows, n):
-    """``sum_rows`` of only the Gaussians some row belongs to: (ids [M] sorted, sums [M, K]
-    float64), each Gaussian's rows added in row order (so every sum equals ``sum_rows``'s to the
-    bit) without the [n, K] block that is mostly zeros when few Gaussians are reached."""
-    slot = np.full(n, -1, dtype=np.int64)
-    for r in range(row_ids.shape[0]):
-        slot[row_ids[r]] = 0
-    m = 0
-    for g in range(n):
-        if slot[g] == 0:
-            slot[g] = m
-            m += 1
-    ids = np.empty(m, dtype=np.int64)
-    for g in range(n):
-        if slot[g] >= 0:
-            ids[slot[g]] = g
-    out = np.zeros((m, rows.shape[1]), dtype=np.float64)
-    for r in range(rows.shape[0]):
-        j = slot[row_ids[r]]
-        for k in range(rows.shape[1]):
-            out[j, k] += rows[r, k]
-    return ids, out
 
 
 @njit(cache=True, error_model="numpy", fastmath={"nsz", "arcp", "contract", "afn", "reassoc"})
@@ -559,34 +544,8 @@ def _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background,
             if alpha == 0.0:
                 continue
             live = alpha < ALPHA_MAX  # ``_pair`` clamps at ALPHA_MAX exactly when not live
-            dx, dy = px[p] - row[0], py[p] - row[1]
-            tr = trans[p] / (1.0 - alpha)
-            trans[p] = tr
-            w = alpha * tr
-            odds = alpha / (1.0 - alpha)
-            total, summed = 0.0, 0.0
-            for c in range(3):
-                s[c] = (w * colors[g, c] - odds * suffix[p, c]) if live else 0.0
-                suffix[p, c] += w * colors[g, c]
-                total += s[c] * s[c]
-                summed += s[c]
-            if channel_summed:
-                total = summed * summed
-            h[0] = row[2] * dx + row[3] * dy
-            h[1] = row[3] * dx + row[4] * dy
-            h[2] = -0.5 * dx * dx
-            h[3] = -dx * dy
-            h[4] = -0.5 * dy * dy
-            k = 0
-            for a in range(6):
-                sh = total * h[a]
-                for b in range(a, 6):
-                    local[k] += sh * h[b]
-                    k += 1
-            for a in range(6):
-                for c in range(3):
-                    local[21 + 3 * a + c] += s[c] * w * h[a]
-            local[39] += w * w
+            _fisher_pair(p, g, row, alpha, live, px[p] - row[0], py[p] - row[1], colors,
+                         channel_summed, trans, suffix, h, s, local)
         out = rows_out[start + j]
         for k in range(FISHER_ROW):
             out[k] = local[k]
@@ -631,9 +590,11 @@ def walk_fisher(gauss_ids, offsets, counts, packed, colors, background, width, h
 
 @njit(cache=True, nogil=True)
 def sum_walked_rows(gauss_ids, offsets, longest, rows, n):
-    """``sum_rows_compact`` of ``walk_fisher``'s rows: (ids [M] sorted, sums [M, K]) over the
-    walked intersections (offsets[t] + j, j < longest[t]), each Gaussian's rows added in tile
-    order, the order of ``walked_rows``."""
+    """``sum_rows`` of ``walk_fisher``'s rows, for only the Gaussians they reach: (ids [M] sorted,
+    sums [M, K] float64) over the walked intersections (offsets[t] + j, j < longest[t]), each
+    Gaussian's rows added in tile order, the row order of ``walked_rows`` (so every sum equals
+    ``sum_rows``'s of those rows to the bit), without the [n, K] block that is mostly zeros when
+    few Gaussians are reached."""
     slot = np.full(n, -1, dtype=np.int64)
     for t in range(offsets.shape[0]):
         for j in range(longest[t]):

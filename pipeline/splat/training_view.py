@@ -59,20 +59,15 @@ class _CompiledTrainingView(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera, background,
                 tile_size, sink):
-        pk = compiled.projection_kernels()
         dtype = means.dtype
         np_dtype = compiled.to_numpy(means[:0]).dtype
         workers = compiled.use_threads()
         arrays = tuple(compiled.to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0,
                                                       shN))
-        # culled Gaussians' colours are not computed: no tile lists them (``all_colors``)
-        means2d, conics, depths, radii, colors, opacities = pk.project_forward(
-            *arrays, *camera, workers, False)
-        # the casts of ``render`` on the compiled backend: projection outputs in the params' dtype
-        # (the kernel already writes them in the parameters' dtype: no copy then)
-        means2d, conics, depths = (x.astype(np_dtype, copy=False) for x in (means2d, conics, depths))
-        colors = colors.astype(np_dtype, copy=False)
-        opacities = opacities.astype(np_dtype, copy=False)
+        # outputs in the params' dtype (the casts of ``render`` on the compiled backend); culled
+        # Gaussians' colours are not computed: no tile lists them
+        means2d, conics, depths, radii, colors, opacities = compiled.project_visible_arrays(
+            arrays, camera, workers)
         _, _, width, height, _, _ = camera
         bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width, height,
                                      tile_size)
