@@ -387,3 +387,71 @@ def test_one_pass_walk_gives_the_fisher_rows_of_the_forward_then_backward_walks(
         assert (np.abs(got - want) / scale).max() < 1e-12, c
         if c == 0:  # the huge opaque Gaussian in front of camera 0 ends walks early
             assert (longest < bins.counts).any(), "no walk ended early: the case is too easy"
+
+
+def _span_cases():
+    """Packed rows of random and adversarial Gaussians: elongated and rotated (tiny determinant),
+    tiny and huge, means far off the tile, opacity at and around the alpha threshold."""
+    import numpy as np
+    rng = np.random.default_rng(7)
+    n = 4000
+    means2d = rng.uniform(-40, 56, size=(n, 2))
+    angle = rng.uniform(0, np.pi, n)
+    s1 = np.exp(rng.uniform(np.log(0.05), np.log(60), n))
+    s2 = s1 * np.exp(rng.uniform(np.log(1e-4), 0, n))  # down to 1e4:1 elongation
+    cos, sin = np.cos(angle), np.sin(angle)
+    # Sigma = R diag(s1^2, s2^2) R^T, conic = Sigma^-1
+    sxx = cos ** 2 * s1 ** 2 + sin ** 2 * s2 ** 2
+    syy = sin ** 2 * s1 ** 2 + cos ** 2 * s2 ** 2
+    sxy = cos * sin * (s1 ** 2 - s2 ** 2)
+    det = sxx * syy - sxy ** 2
+    conics = np.stack([syy / det, -sxy / det, sxx / det], 1)
+    alpha_min = 1 / 255
+    opacities = np.concatenate([rng.uniform(0.01, 1, n - 6),
+                                [alpha_min, alpha_min * (1 + 1e-9), alpha_min * (1 - 1e-9), 1.0, 0.0, 1e-3]])
+    return compiled.load().pack(means2d, conics, opacities)
+
+
+def test_a_pairs_pixel_box_holds_every_pixel_it_reaches():
+    """The box of ``pack`` (ex, ey), cut to a tile by ``_span``, is where the walks look for a
+    Gaussian's pixels: every pixel ``_pair`` does not skip must lie inside it (brute force over
+    whole tiles; a missed pixel would silently drop part of the image and its gradients), and on
+    typical Gaussians it is much smaller than the tile."""
+    import numpy as np
+    k = compiled.load()
+    packed = _span_cases()
+    tile, width, height = 8, 53, 45  # edge tiles cut by the image
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    inside = total = reached = 0
+    for g in range(packed.shape[0]):
+        row = packed[g]
+        for t in range(tiles_x * tiles_y):
+            x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
+            tw, th = min(tile, width - x0), min(tile, height - y0)
+            lx0, lx1 = k._span(row[0], row[7], x0, tw)
+            ly0, ly1 = k._span(row[1], row[8], y0, th)
+            assert 0 <= lx0 <= lx1 <= tw and 0 <= ly0 <= ly1 <= th
+            for ly in range(th):
+                for lx in range(tw):
+                    alpha = k._pair(x0 + lx + 0.5, y0 + ly + 0.5, row)[0]
+                    total += 1
+                    if alpha != 0.0:
+                        reached += 1
+                        assert lx0 <= lx < lx1 and ly0 <= ly < ly1, (g, t, lx, ly, row)
+            inside += (lx1 - lx0) * (ly1 - ly0)
+    assert reached > 1000  # the cases reach pixels at all
+    assert inside < 0.25 * total  # and the box cuts most of the walk
+
+
+def test_span_edges_no_box_and_nothing_reachable():
+    """An infinite extent (no box) or a NaN centre spans the whole tile row; a negative extent
+    (no pixel can reach the threshold) spans none; a box past either end is cut to the tile."""
+    import math
+    k = compiled.load()
+    assert k._span(3.0, math.inf, 0, 8) == (0, 8)
+    assert k._span(math.nan, 2.0, 0, 8) == (0, 8)
+    assert k._span(3.0, -1.0, 0, 8)[1] == k._span(3.0, -1.0, 0, 8)[0]
+    assert k._span(-50.0, 2.0, 0, 8) == (0, 0)
+    assert k._span(100.0, 2.0, 0, 8)[0] == k._span(100.0, 2.0, 0, 8)[1]
+    assert k._span(12.5, 1.0, 8, 8) == (3, 6)  # centres 11.5, 12.5, 13.5 within 1.0 of 12.5
+    assert k._span(12.5, 0.99, 8, 8) == (4, 5)

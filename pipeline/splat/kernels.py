@@ -35,21 +35,37 @@ PRANGE_ONLY = {"prange": True, "comprehension": False, "reduction": False, "inpl
                "setitem": False, "numpy": False, "stencil": False, "fusion": False}
 
 SKIP_MARGIN = 1e-6  # a pair is skipped without exp only when clearly below the alpha threshold
-PACKED = 8
+PACKED = 10
 FISHER_ROW = 40  # 21 (S h h^T, upper triangle) + 18 (s_c w h) + 1 (w^2)
 
 
 @njit(cache=True, nogil=True)
 def pack(means2d, conics, opacities):
-    """[N, 8] float64 rows (u, v, a, b, c, opacity, log(ALPHA_MIN / opacity), 0)."""
+    """[N, 10] float64 rows (u, v, a, b, c, opacity, log(ALPHA_MIN / opacity), ex, ey, 0).
+
+    (ex, ey): half-widths in pixels of the box around (u, v) outside which ``_pair`` skips every
+    pixel by its threshold test (power < log(ALPHA_MIN / opacity) - SKIP_MARGIN, i.e.
+    d^T Q d > k^2 = 2 (SKIP_MARGIN - log(ALPHA_MIN / opacity))): the ellipse's bounding box
+    k sqrt(Sigma_xx), k sqrt(Sigma_yy) (Sigma = Q^-1), widened by a hair for rounding; negative
+    when no pixel can pass (k^2 <= 0), inf when the conic is not positive definite (no box)."""
     n = means2d.shape[0]
     packed = np.zeros((n, PACKED), dtype=np.float64)
     for g in range(n):
         packed[g, 0], packed[g, 1] = means2d[g, 0], means2d[g, 1]
-        packed[g, 2], packed[g, 3], packed[g, 4] = conics[g, 0], conics[g, 1], conics[g, 2]
+        a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+        packed[g, 2], packed[g, 3], packed[g, 4] = a, b, c
         o = float(opacities[g])
         packed[g, 5] = o
         packed[g, 6] = math.log(ALPHA_MIN / o) if o > 0.0 else np.inf
+        k2 = 2.0 * (SKIP_MARGIN - packed[g, 6])
+        det = a * c - b * b
+        if not k2 > 0.0:
+            packed[g, 7] = packed[g, 8] = -1.0
+        elif det > 0.0 and a > 0.0 and c > 0.0 and k2 < np.inf:
+            packed[g, 7] = math.sqrt(k2 * c / det) * (1.0 + 1e-6) + 1e-3
+            packed[g, 8] = math.sqrt(k2 * a / det) * (1.0 + 1e-6) + 1e-3
+        else:
+            packed[g, 7] = packed[g, 8] = np.inf
     return packed
 
 
@@ -183,6 +199,29 @@ def _pair(px, py, row):
 
 
 @njit(cache=True, inline="always")
+def _span(centre, extent, origin, size):
+    """[first, stop) of the pixels k (0 <= k < size) of a tile row or column starting at pixel
+    ``origin`` whose centre origin + k + 0.5 lies within ``extent`` of ``centre``: all of them
+    when the extent is inf (or anything is NaN), none when it is negative."""
+    if not extent < np.inf:
+        return 0, size
+    lo = centre - extent - origin - 0.5
+    hi = centre + extent - origin - 0.5
+    if not (lo == lo and hi == hi):  # a NaN centre: no box, as an infinite extent
+        return 0, size
+    first = 0 if lo <= 0.0 else (size if lo >= size else int(math.ceil(lo)))
+    stop = size if hi >= size - 1 else (0 if hi < 0.0 else int(math.floor(hi)) + 1)
+    return first, max(stop, first)
+
+
+@njit(cache=True, inline="always")
+def _tile_box(t, tiles_x, tile_size, width, height):
+    """(x0, y0, tw, th): tile t's first pixel and its size (edge tiles are cut by the image)."""
+    x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+    return x0, y0, min(tile_size, width - x0), min(tile_size, height - y0)
+
+
+@njit(cache=True, inline="always")
 def _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys):
     """Fill xs, ys with the image pixels of tile t (row-major); returns how many."""
     x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
@@ -209,26 +248,30 @@ def _forward_tile(t, gauss_ids, offsets, counts, packed, features, tiles_x, tile
     last = np.zeros(npix, dtype=np.int64)
     done = np.zeros(npix, dtype=np.bool_)
     ndone = 0
+    x0, y0, tw, th = _tile_box(t, tiles_x, tile_size, width, height)
     start = offsets[t]
     for j in range(counts[t]):
         g = gauss_ids[start + j]
         row = packed[g]
-        for p in range(npix):
-            if done[p]:
-                continue
-            alpha, _, _, _, _ = _pair(px[p], py[p], row)
-            if alpha == 0.0:
-                continue
-            after = trans[p] * (1.0 - alpha)
-            if after < T_MIN:
-                done[p] = True
-                ndone += 1
-                continue
-            w = alpha * trans[p]
-            for k in range(dim):
-                acc[p, k] += w * features[g, k]
-            trans[p] = after
-            last[p] = j + 1
+        lx0, lx1 = _span(row[0], row[7], x0, tw)
+        ly0, ly1 = _span(row[1], row[8], y0, th)
+        for ly in range(ly0, ly1):
+            for p in range(ly * tw + lx0, ly * tw + lx1):
+                if done[p]:
+                    continue
+                alpha, _, _, _, _ = _pair(px[p], py[p], row)
+                if alpha == 0.0:
+                    continue
+                after = trans[p] * (1.0 - alpha)
+                if after < T_MIN:
+                    done[p] = True
+                    ndone += 1
+                    continue
+                w = alpha * trans[p]
+                for k in range(dim):
+                    acc[p, k] += w * features[g, k]
+                trans[p] = after
+                last[p] = j + 1
         if ndone == npix:
             break
     for p in range(npix):
@@ -313,36 +356,40 @@ def _backward_tile(t, gauss_ids, offsets, row_start, packed, features, final, wa
         for k in range(dim):
             upstream[p, k] = grad_image[y, x, k]
     local = np.empty(6 + dim)
+    x0, y0, tw, th = _tile_box(t, tiles_x, tile_size, width, height)
     start, rows = offsets[t], row_start[t]
     for j in range(longest - 1, -1, -1):
         g = gauss_ids[start + j]
         row = packed[g]
         a, b, c = row[2], row[3], row[4]
         local[:] = 0.0
-        for p in range(npix):
-            if j >= ends[p]:
-                continue
-            alpha, live, dx, dy, e = _pair(px[p], py[p], row)
-            if alpha == 0.0:
-                continue
-            tr = trans[p] / (1.0 - alpha)
-            trans[p] = tr
-            w = alpha * tr
-            q = 0.0
-            for k in range(dim):
-                q += upstream[p, k] * features[g, k]
-                local[6 + k] += w * upstream[p, k]
-            d_alpha = tr * q - behind[p] / (1.0 - alpha)
-            behind[p] += w * q
-            if not live:
-                continue
-            d_power = d_alpha * alpha
-            local[0] += d_power * (a * dx + b * dy)
-            local[1] += d_power * (b * dx + c * dy)
-            local[2] -= 0.5 * d_power * dx * dx
-            local[3] -= d_power * dx * dy
-            local[4] -= 0.5 * d_power * dy * dy
-            local[5] += d_alpha * e
+        lx0, lx1 = _span(row[0], row[7], x0, tw)
+        ly0, ly1 = _span(row[1], row[8], y0, th)
+        for ly in range(ly0, ly1):
+            for p in range(ly * tw + lx0, ly * tw + lx1):
+                if j >= ends[p]:
+                    continue
+                alpha, live, dx, dy, e = _pair(px[p], py[p], row)
+                if alpha == 0.0:
+                    continue
+                tr = trans[p] / (1.0 - alpha)
+                trans[p] = tr
+                w = alpha * tr
+                q = 0.0
+                for k in range(dim):
+                    q += upstream[p, k] * features[g, k]
+                    local[6 + k] += w * upstream[p, k]
+                d_alpha = tr * q - behind[p] / (1.0 - alpha)
+                behind[p] += w * q
+                if not live:
+                    continue
+                d_power = d_alpha * alpha
+                local[0] += d_power * (a * dx + b * dy)
+                local[1] += d_power * (b * dx + c * dy)
+                local[2] -= 0.5 * d_power * dx * dx
+                local[3] -= d_power * dx * dy
+                local[4] -= 0.5 * d_power * dy * dy
+                local[5] += d_alpha * e
         out = grads[rows + j]
         for k in range(6 + dim):
             out[k] = local[k]
@@ -432,20 +479,24 @@ def _fisher_tile(t, gauss_ids, offsets, row_start, packed, colors, final, walked
     h = np.empty(6)
     s = np.empty(3)
     local = np.empty(FISHER_ROW)
+    x0, y0, tw, th = _tile_box(t, tiles_x, tile_size, width, height)
     start, rows = offsets[t], row_start[t]
     for j in range(longest - 1, -1, -1):
         g = gauss_ids[start + j]
         row = packed[g]
         local[:] = 0.0
         h[5] = 1.0 / row[5]
-        for p in range(npix):
-            if j >= ends[p]:
-                continue
-            alpha, live, dx, dy, _ = _pair(px[p], py[p], row)
-            if alpha == 0.0:
-                continue
-            _fisher_pair(p, g, row, alpha, live, dx, dy, colors, channel_summed, trans, suffix,
-                         h, s, local)
+        lx0, lx1 = _span(row[0], row[7], x0, tw)
+        ly0, ly1 = _span(row[1], row[8], y0, th)
+        for ly in range(ly0, ly1):
+            for p in range(ly * tw + lx0, ly * tw + lx1):
+                if j >= ends[p]:
+                    continue
+                alpha, live, dx, dy, _ = _pair(px[p], py[p], row)
+                if alpha == 0.0:
+                    continue
+                _fisher_pair(p, g, row, alpha, live, dx, dy, colors, channel_summed, trans,
+                             suffix, h, s, local)
         out = rows_out[rows + j]
         for k in range(FISHER_ROW):
             out[k] = local[k]
@@ -507,24 +558,29 @@ def _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background,
     trans = np.ones(npix)
     done = np.zeros(npix, dtype=np.bool_)
     ndone, longest = 0, 0
+    x0, y0, tw, th = _tile_box(t, tiles_x, tile_size, width, height)
     start, count = offsets[t], counts[t]
     for j in range(count):
         row = packed[gauss_ids[start + j]]
         for p in range(npix):
             alphas[j, p] = 0.0
-            if done[p]:
-                continue
-            alpha, _, _, _, _ = _pair(px[p], py[p], row)
-            if alpha == 0.0:
-                continue
-            after = trans[p] * (1.0 - alpha)
-            if after < T_MIN:
-                done[p] = True
-                ndone += 1
-                continue
-            alphas[j, p] = alpha
-            trans[p] = after
-            longest = j + 1
+        lx0, lx1 = _span(row[0], row[7], x0, tw)
+        ly0, ly1 = _span(row[1], row[8], y0, th)
+        for ly in range(ly0, ly1):
+            for p in range(ly * tw + lx0, ly * tw + lx1):
+                if done[p]:
+                    continue
+                alpha, _, _, _, _ = _pair(px[p], py[p], row)
+                if alpha == 0.0:
+                    continue
+                after = trans[p] * (1.0 - alpha)
+                if after < T_MIN:
+                    done[p] = True
+                    ndone += 1
+                    continue
+                alphas[j, p] = alpha
+                trans[p] = after
+                longest = j + 1
         if ndone == npix:
             break
     suffix = np.empty((npix, 3))
@@ -539,13 +595,16 @@ def _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background,
         row = packed[g]
         local[:] = 0.0
         h[5] = 1.0 / row[5]
-        for p in range(npix):
-            alpha = alphas[j, p]
-            if alpha == 0.0:
-                continue
-            live = alpha < ALPHA_MAX  # ``_pair`` clamps at ALPHA_MAX exactly when not live
-            _fisher_pair(p, g, row, alpha, live, px[p] - row[0], py[p] - row[1], colors,
-                         channel_summed, trans, suffix, h, s, local)
+        lx0, lx1 = _span(row[0], row[7], x0, tw)
+        ly0, ly1 = _span(row[1], row[8], y0, th)
+        for ly in range(ly0, ly1):
+            for p in range(ly * tw + lx0, ly * tw + lx1):
+                alpha = alphas[j, p]
+                if alpha == 0.0:
+                    continue
+                live = alpha < ALPHA_MAX  # ``_pair`` clamps at ALPHA_MAX exactly when not live
+                _fisher_pair(p, g, row, alpha, live, px[p] - row[0], py[p] - row[1], colors,
+                             channel_summed, trans, suffix, h, s, local)
         out = rows_out[start + j]
         for k in range(FISHER_ROW):
             out[k] = local[k]
