@@ -455,3 +455,44 @@ def test_span_edges_no_box_and_nothing_reachable():
     assert k._span(100.0, 2.0, 0, 8)[0] == k._span(100.0, 2.0, 0, 8)[1]
     assert k._span(12.5, 1.0, 8, 8) == (3, 6)  # centres 11.5, 12.5, 13.5 within 1.0 of 12.5
     assert k._span(12.5, 0.99, 8, 8) == (4, 5)
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_one_pass_packing_equals_pack_and_rects_where_a_tile_lists_the_gaussian(workers):
+    """``pack_rects`` (the bins' packing, threaded, culled Gaussians skipped) against ``pack`` and
+    ``alpha_tile_rects`` run over every Gaussian: the same rects for all, the same packed row
+    for every Gaussian some tile lists; ``listed`` finds exactly those."""
+    import numpy as np
+    k = compiled.load()
+    full = _span_cases()
+    rng = np.random.default_rng(3)
+    means2d, conics, opacities = full[:, 0:2].copy(), full[:, 2:5].copy(), full[:, 5].copy()
+    radii = np.where(rng.random(full.shape[0]) < 0.2, rng.integers(-1, 1, size=full.shape[0]),
+                     rng.integers(1, 40, size=full.shape[0]))  # a fifth culled (0 and -1)
+    packed, rects = k.pack_rects(means2d, conics, opacities, radii, 7, 6, 8, workers)
+    expected_rects = k.alpha_tile_rects(full, radii, 7, 6, 8)
+    np.testing.assert_array_equal(rects, expected_rects)
+    ids = k.listed(rects)
+    nonempty = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
+    np.testing.assert_array_equal(ids, nonempty)
+    assert 100 < ids.size < full.shape[0] - 100  # some listed, some culled or off the tiles
+    np.testing.assert_array_equal(packed[radii > 0], full[radii > 0])  # every block's every row
+    assert not packed[radii <= 0].any()
+
+
+def test_bins_from_the_listed_gaussians_equal_bins_from_all():
+    """The bins sort only the listed Gaussians by depth (the cut of the stable order): the tile
+    lists must equal those of ``bin_tiles`` given the stable order of every Gaussian."""
+    import numpy as np
+    k = compiled.load()
+    full = _span_cases()
+    rng = np.random.default_rng(4)
+    n = full.shape[0]
+    radii = rng.integers(0, 30, size=n)
+    depths = rng.choice(np.linspace(0.5, 3.0, 50), size=n).astype(np.float32)  # many ties
+    bins = compiled.CompiledBins(full[:, 0:2], full[:, 2:5], full[:, 5], radii, depths, 53, 45, 8)
+    rects = k.alpha_tile_rects(full, radii, 7, 6, 8)
+    ids, offsets, counts = k.bin_tiles(rects, np.argsort(depths, kind="stable"), 7, 6)
+    np.testing.assert_array_equal(bins.gauss_ids, ids)
+    np.testing.assert_array_equal(bins.offsets, offsets)
+    np.testing.assert_array_equal(bins.counts, counts)

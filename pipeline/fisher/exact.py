@@ -291,7 +291,7 @@ def _compiled_fisher_rows(proj, width: int, height: int, background: Tensor, til
     no feature channel: only its final transmittance and walked lengths are needed."""
     kernels = compiled.load()
     bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
-                                 proj.depths, width, height, tile_size)
+                                 proj.depths, width, height, tile_size, workers)
     colors = compiled.to_numpy(proj.colors)
     _, final, walked = bins.forward(np.empty((colors.shape[0], 0), dtype=colors.dtype), workers)
     row_start, row_ids = bins.walked_rows(walked)
@@ -503,7 +503,8 @@ def _fused_views(gaussians: Gaussians, cameras: Cameras, background: Tensor | No
         proj = compiled.project_visible(arrays, cams.viewmats[c], cams.Ks[c], cams.width,
                                         cams.height, degree, settings.near, kernel_workers)
         bins = compiled.CompiledBins(proj.means2d, proj.conics, proj.opacities, proj.radii,
-                                     proj.depths, cams.width, cams.height, settings.tile_size)
+                                     proj.depths, cams.width, cams.height, settings.tile_size,
+                                     kernel_workers)
         longest, rows = kernels.walk_fisher(bins.gauss_ids, bins.offsets, bins.counts, bins.packed,
                                             compiled.to_numpy(proj.colors), background, cams.width,
                                             cams.height, bins.tiles_x, settings.tile_size,

@@ -190,19 +190,22 @@ class CompiledBins:
     packed per-Gaussian rows the kernels read. Built from CPU tensors or NumPy arrays.
 
     gauss_ids [I], offsets [T], counts [T] (same meaning as ``rasterize.TileBins``);
-    packed [N, 8] float64 (see ``kernels``).
+    packed [N, PACKED] float64 (see ``kernels``; rows of Gaussians no tile lists are zeros).
+    Packing runs on ``workers`` threads; only the Gaussians some tile lists are depth-sorted.
     """
 
     def __init__(self, means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor,
-                 depths: Tensor, width: int, height: int, tile_size: int):
+                 depths: Tensor, width: int, height: int, tile_size: int, workers: int = 1):
         kernels = load()
         self.width, self.height, self.tile_size = width, height, tile_size
         self.tiles_x, self.tiles_y = -(-width // tile_size), -(-height // tile_size)
-        self.packed = kernels.pack(_array(means2d), _array(conics), _array(opacities))
-        rects = kernels.alpha_tile_rects(self.packed, _array(radii).astype(np.int64), self.tiles_x,
-                                         self.tiles_y, tile_size)
-        self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(
-            rects, kernels.depth_order(_array(depths)), self.tiles_x, self.tiles_y)
+        self.packed, rects = kernels.pack_rects(
+            _array(means2d), _array(conics), _array(opacities), _array(radii).astype(np.int64),
+            self.tiles_x, self.tiles_y, tile_size, workers)
+        ids = kernels.listed(rects)
+        order = ids[kernels.depth_order(_array(depths)[ids])]  # stable: as the full order, cut
+        self.gauss_ids, self.offsets, self.counts = kernels.bin_tiles(rects, order, self.tiles_x,
+                                                                      self.tiles_y)
 
     def forward(self, features: np.ndarray, workers: int):
         """(image [H, W, D] in the features' dtype, final transmittance [H, W] float64,
@@ -250,7 +253,8 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
     """
     if load() is None:
         raise RuntimeError(f"backend 'compiled' cannot load: {load_error()}")
-    bins = CompiledBins(means2d, conics, opacities, radii, depths, width, height, tile_size)
+    bins = CompiledBins(means2d, conics, opacities, radii, depths, width, height, tile_size,
+                        use_threads())
     image, final = _CompiledComposite.apply(means2d, conics, opacities, features, bins)
     return image, 1 - final
 

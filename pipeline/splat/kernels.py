@@ -39,6 +39,27 @@ PACKED = 10
 FISHER_ROW = 40  # 21 (S h h^T, upper triangle) + 18 (s_c w h) + 1 (w^2)
 
 
+@njit(cache=True, inline="always")
+def _pack_row(means2d, conics, opacities, g, out):
+    """Gaussian g's packed row (``pack``) into out [PACKED]."""
+    out[0], out[1] = means2d[g, 0], means2d[g, 1]
+    a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+    out[2], out[3], out[4] = a, b, c
+    o = float(opacities[g])
+    out[5] = o
+    out[6] = math.log(ALPHA_MIN / o) if o > 0.0 else np.inf
+    k2 = 2.0 * (SKIP_MARGIN - out[6])
+    det = a * c - b * b
+    if not k2 > 0.0:
+        out[7] = out[8] = -1.0
+    elif det > 0.0 and a > 0.0 and c > 0.0 and k2 < np.inf:
+        out[7] = math.sqrt(k2 * c / det) * (1.0 + 1e-6) + 1e-3
+        out[8] = math.sqrt(k2 * a / det) * (1.0 + 1e-6) + 1e-3
+    else:
+        out[7] = out[8] = np.inf
+    out[9] = 0.0
+
+
 @njit(cache=True, nogil=True)
 def pack(means2d, conics, opacities):
     """[N, 10] float64 rows (u, v, a, b, c, opacity, log(ALPHA_MIN / opacity), ex, ey, 0).
@@ -49,24 +70,54 @@ def pack(means2d, conics, opacities):
     k sqrt(Sigma_xx), k sqrt(Sigma_yy) (Sigma = Q^-1), widened by a hair for rounding; negative
     when no pixel can pass (k^2 <= 0), inf when the conic is not positive definite (no box)."""
     n = means2d.shape[0]
-    packed = np.zeros((n, PACKED), dtype=np.float64)
+    packed = np.empty((n, PACKED), dtype=np.float64)
     for g in range(n):
-        packed[g, 0], packed[g, 1] = means2d[g, 0], means2d[g, 1]
-        a, b, c = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
-        packed[g, 2], packed[g, 3], packed[g, 4] = a, b, c
-        o = float(opacities[g])
-        packed[g, 5] = o
-        packed[g, 6] = math.log(ALPHA_MIN / o) if o > 0.0 else np.inf
-        k2 = 2.0 * (SKIP_MARGIN - packed[g, 6])
-        det = a * c - b * b
-        if not k2 > 0.0:
-            packed[g, 7] = packed[g, 8] = -1.0
-        elif det > 0.0 and a > 0.0 and c > 0.0 and k2 < np.inf:
-            packed[g, 7] = math.sqrt(k2 * c / det) * (1.0 + 1e-6) + 1e-3
-            packed[g, 8] = math.sqrt(k2 * a / det) * (1.0 + 1e-6) + 1e-3
-        else:
-            packed[g, 7] = packed[g, 8] = np.inf
+        _pack_row(means2d, conics, opacities, g, packed[g])
     return packed
+
+
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
+def pack_rects(means2d, conics, opacities, radii, tiles_x, tiles_y, tile_size, workers):
+    """``pack`` and ``alpha_tile_rects`` in one pass over the Gaussians, on ``workers`` threads
+    (contiguous blocks), for the Gaussians with radius > 0 only: a culled one's rect is empty (as
+    ``alpha_tile_rects`` makes it) and its packed row is zeros, which nothing reads (no tile lists
+    it). At 64 px most of a real scene's Gaussians are culled in any one view.
+    Returns (packed [N, PACKED], rects [N, 4])."""
+    n = means2d.shape[0]
+    packed = np.zeros((n, PACKED), dtype=np.float64)
+    rects = np.zeros((n, 4), dtype=np.int64)
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        _pack_rects_block(0, n, means2d, conics, opacities, radii, tiles_x, tiles_y, tile_size,
+                          packed, rects)
+    else:
+        for w in prange(workers):
+            _pack_rects_block(w * n // workers, (w + 1) * n // workers, means2d, conics,
+                              opacities, radii, tiles_x, tiles_y, tile_size, packed, rects)
+    return packed, rects
+
+
+@njit(cache=True, nogil=True)
+def _pack_rects_block(lo, hi, means2d, conics, opacities, radii, tiles_x, tiles_y, tile_size,
+                      packed, rects):
+    for g in range(lo, hi):
+        if radii[g] > 0:
+            _pack_row(means2d, conics, opacities, g, packed[g])
+            _alpha_rect(packed[g], radii[g], tiles_x, tiles_y, tile_size, rects[g])
+
+
+@njit(cache=True, nogil=True)
+def listed(rects):
+    """Ids [M] (ascending) of the Gaussians whose rect is not empty: the ones some tile lists."""
+    count = 0
+    for g in range(rects.shape[0]):
+        count += rects[g, 1] > rects[g, 0]
+    ids = np.empty(count, dtype=np.int64)
+    m = 0
+    for g in range(rects.shape[0]):
+        if rects[g, 1] > rects[g, 0]:
+            ids[m] = g
+            m += 1
+    return ids
 
 
 RADIX_BITS = 11
@@ -124,42 +175,49 @@ def alpha_tile_rects(packed, radii, tiles_x, tiles_y, tile_size):
     n = packed.shape[0]
     rects = np.zeros((n, 4), dtype=np.int64)
     for g in range(n):
-        if radii[g] <= 0:
-            continue
-        u, v, r = packed[g, 0], packed[g, 1], float(radii[g])
-        lo_x, hi_x, lo_y, hi_y = u - r, u + r, v - r, v + r
-        a, b, c, o = packed[g, 2], packed[g, 3], packed[g, 4], packed[g, 5]
-        det = a * c - b * b
-        if o * ALPHA_MAX < ALPHA_MIN:  # alpha < ALPHA_MIN everywhere (o exp(power) <= o)
-            continue
-        if det > 0.0 and o > ALPHA_MIN:
-            k2 = 2.0 * math.log(o / ALPHA_MIN)
-            ex = math.sqrt(k2 * c / det) * (1.0 + 1e-6) + 1e-3  # conservative by a hair
-            ey = math.sqrt(k2 * a / det) * (1.0 + 1e-6) + 1e-3
-            lo_x, hi_x = max(lo_x, u - ex), min(hi_x, u + ex)
-            lo_y, hi_y = max(lo_y, v - ey), min(hi_y, v + ey)
-        elif o <= ALPHA_MIN:
-            continue
-        rects[g, 0] = min(max(math.floor(lo_x / tile_size), 0), tiles_x)
-        rects[g, 1] = min(max(math.floor(hi_x / tile_size) + 1, 0), tiles_x)
-        rects[g, 2] = min(max(math.floor(lo_y / tile_size), 0), tiles_y)
-        rects[g, 3] = min(max(math.floor(hi_y / tile_size) + 1, 0), tiles_y)
-        if rects[g, 1] <= rects[g, 0] or rects[g, 3] <= rects[g, 2]:
-            rects[g, 0] = rects[g, 1] = rects[g, 2] = rects[g, 3] = 0
+        if radii[g] > 0:
+            _alpha_rect(packed[g], radii[g], tiles_x, tiles_y, tile_size, rects[g])
     return rects
+
+
+@njit(cache=True, inline="always")
+def _alpha_rect(row, radius, tiles_x, tiles_y, tile_size, rect):
+    """The tile rect (``alpha_tile_rects``) of one packed row with radius > 0 into rect [4]
+    (left as it is, zeros, when empty)."""
+    u, v, r = row[0], row[1], float(radius)
+    lo_x, hi_x, lo_y, hi_y = u - r, u + r, v - r, v + r
+    a, b, c, o = row[2], row[3], row[4], row[5]
+    det = a * c - b * b
+    if o * ALPHA_MAX < ALPHA_MIN:  # alpha < ALPHA_MIN everywhere (o exp(power) <= o)
+        return
+    if det > 0.0 and o > ALPHA_MIN:
+        k2 = 2.0 * math.log(o / ALPHA_MIN)
+        ex = math.sqrt(k2 * c / det) * (1.0 + 1e-6) + 1e-3  # conservative by a hair
+        ey = math.sqrt(k2 * a / det) * (1.0 + 1e-6) + 1e-3
+        lo_x, hi_x = max(lo_x, u - ex), min(hi_x, u + ex)
+        lo_y, hi_y = max(lo_y, v - ey), min(hi_y, v + ey)
+    elif o <= ALPHA_MIN:
+        return
+    x0 = min(max(math.floor(lo_x / tile_size), 0), tiles_x)
+    x1 = min(max(math.floor(hi_x / tile_size) + 1, 0), tiles_x)
+    y0 = min(max(math.floor(lo_y / tile_size), 0), tiles_y)
+    y1 = min(max(math.floor(hi_y / tile_size) + 1, 0), tiles_y)
+    if x1 > x0 and y1 > y0:
+        rect[0], rect[1], rect[2], rect[3] = x0, x1, y0, y1
 
 
 @njit(cache=True, nogil=True)
 def bin_tiles(rects, depth_order, tiles_x, tiles_y):
     """Per-tile Gaussian lists in front-to-back order by a counting sort over tiles.
 
-    rects [N, 4] from ``alpha_tile_rects``; depth_order [N] Gaussian ids front to back (stable).
+    rects [N, 4] from ``alpha_tile_rects``; depth_order [M] Gaussian ids front to back (stable):
+    every Gaussian whose rect is not empty (``listed``), and any others (they add nothing).
     Returns gauss_ids [I], offsets [T], counts [T]: tile t's list is
     gauss_ids[offsets[t]:offsets[t] + counts[t]], in the order of ``depth_order``.
     """
     num_tiles = tiles_x * tiles_y
     counts = np.zeros(num_tiles, dtype=np.int64)
-    for g in range(rects.shape[0]):
+    for g in depth_order:
         for ty in range(rects[g, 2], rects[g, 3]):
             for tx in range(rects[g, 0], rects[g, 1]):
                 counts[ty * tiles_x + tx] += 1

@@ -70,7 +70,7 @@ class _CompiledTrainingView(torch.autograd.Function):
             arrays, camera, workers)
         _, _, width, height, _, _ = camera
         bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width, height,
-                                     tile_size)
+                                     tile_size, workers)
         image, final, walked = bins.forward(colors, workers)
         bg = compiled.to_numpy(background)
         alpha = 1 - final.astype(np_dtype)  # as ``rasterize_compiled``: 1 - final, params' dtype
