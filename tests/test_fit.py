@@ -547,3 +547,16 @@ def test_compiled_loss_refuses_what_it_cannot_compute():
         photometric_loss_compiled(img[None], ref[None])
     with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
         photometric_loss_compiled(img, ref[:-1])
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_compiled_loss_is_the_same_to_the_bit_on_any_number_of_threads(workers):
+    """The window's passes run plane by plane on the kernels' threads: value and gradient must
+    not depend on how many there are (a plane skipped or blurred twice by a worker would)."""
+    from pipeline.fit import loss_kernels
+    img, ref = _image_pair(torch.float32, seed=3, shape=(23, 31, 3))
+    taps = loss_kernels.gaussian_taps(11, 1.5)
+    one = loss_kernels.photometric_value_and_grad(img.numpy(), ref.numpy(), 0.2, taps, 1)
+    many = loss_kernels.photometric_value_and_grad(img.numpy(), ref.numpy(), 0.2, taps, workers)
+    assert one[0] == many[0]
+    assert (one[1] == many[1]).all()

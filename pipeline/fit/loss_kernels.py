@@ -22,7 +22,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from pipeline.splat.kernels import PRANGE_ONLY
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
 
@@ -34,16 +36,27 @@ def gaussian_taps(size: int = 11, sigma: float = 1.5) -> np.ndarray:
     return g / g.sum()
 
 
+@njit(parallel=PRANGE_ONLY, cache=True, nogil=True)
+def _blur(src, taps, out, workers):
+    """out = G * src, zero-padded 'same', for src [K, H, W] (each plane separately), the planes
+    interleaved over ``workers`` (each plane's arithmetic is the same whoever blurs it)."""
+    if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
+        _blur_planes(src, taps, out, 0, 1)
+    else:
+        for w in prange(workers):
+            _blur_planes(src, taps, out, w, workers)
+
+
 @njit(cache=True, nogil=True)
-def _blur(src, taps, out):
-    """out = G * src, zero-padded 'same', for src [K, H, W] (each plane separately): a horizontal
-    then a vertical 1-D pass over zero-padded copies, the inner loop along a row (vectorised)."""
+def _blur_planes(src, taps, out, first, step):
+    """Planes first, first + step, ... of ``_blur``: a horizontal then a vertical 1-D pass over
+    zero-padded copies, the inner loop along a row (vectorised)."""
     planes, height, width = src.shape
     size = taps.shape[0]
     r = size // 2
     wide = np.zeros((height, width + 2 * r))
     tall = np.zeros((height + 2 * r, width))
-    for k in range(planes):
+    for k in range(first, planes, step):
         for i in range(height):
             for j in range(width):
                 wide[i, r + j] = src[k, i, j]
@@ -64,8 +77,9 @@ def _blur(src, taps, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def photometric_value_and_grad(image, target, ssim_weight, taps):
-    """(loss float64, dloss/dimage [H, W, 3] float64) of image, target [H, W, 3] (any float)."""
+def photometric_value_and_grad(image, target, ssim_weight, taps, workers):
+    """(loss float64, dloss/dimage [H, W, 3] float64) of image, target [H, W, 3] (any float); the
+    window's passes on ``workers`` threads (the rest, ~a fifth, on one)."""
     height, width, channels = image.shape
     n = height * width * channels
     stack = np.empty((5 * channels, height, width))
@@ -79,7 +93,7 @@ def photometric_value_and_grad(image, target, ssim_weight, taps):
                 stack[3 * channels + c, i, j] = y * y
                 stack[4 * channels + c, i, j] = x * y
     means = np.empty_like(stack)
-    _blur(stack, taps, means)
+    _blur(stack, taps, means, workers)
     dmaps = np.empty((3 * channels, height, width))  # dS/dmu_x, dS/dE[x^2], dS/dE[xy]
     ssim_sum, l1_sum = 0.0, 0.0
     for c in range(channels):
@@ -98,7 +112,7 @@ def photometric_value_and_grad(image, target, ssim_weight, taps):
                 dmaps[channels + c, i, j] = -s / b2
                 dmaps[2 * channels + c, i, j] = 2 * a1 / den
     back = np.empty_like(dmaps)
-    _blur(dmaps, taps, back)
+    _blur(dmaps, taps, back, workers)
     grad = np.empty((height, width, channels))
     w_l1, w_ssim = (1 - ssim_weight) / n, ssim_weight / n
     for c in range(channels):

@@ -61,9 +61,10 @@ class _CompiledPhotometricLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, img, ref, ssim_weight):
         from pipeline.fit import loss_kernels
+        from pipeline.splat import compiled
         value, grad = loss_kernels.photometric_value_and_grad(
             img.detach().contiguous().numpy(), ref.detach().contiguous().numpy(),
-            float(ssim_weight), _taps(11, 1.5))
+            float(ssim_weight), _taps(11, 1.5), compiled.use_threads())
         ctx.grad = torch.from_numpy(grad).to(img.dtype)
         return img.new_tensor(value)
 
