@@ -166,8 +166,37 @@ def test_scaled_schedules_and_no_opacity_reset_at_the_end():
     assert torch.sigmoid(t.params["logit_opacities"].detach()).max() > 0.5 * before
 
 
-def test_a_non_finite_step_is_skipped_saved_counted_and_fails_past_the_limit(tmp_path, monkeypatch):
+def poison_the_step(monkeypatch, trainer_module, poisoned: dict) -> None:
+    """Make the trainer's steps non-finite while ``poisoned["on"]`` says so, on whichever path a
+    step takes: "gradient" (a finite loss whose gradient is NaN), "loss" (a NaN loss), None."""
+    def loss_with_nan(image, target, weight, _real=trainer_module.photometric_loss):
+        loss = _real(image, target, weight)
+        if poisoned["on"] == "gradient":  # 0 * d sqrt(0) = NaN
+            return loss + 0 * (image.sum() * 0).sqrt()
+        return loss * float("nan") if poisoned["on"] else loss
+
+    def fused_with_nan(*args, _real=trainer_module.fused_step_gradients):
+        step = _real(*args)
+        if poisoned["on"] == "gradient":
+            step.grads["means"][0, 0] = float("nan")
+        elif poisoned["on"]:
+            step.loss = float("nan")
+        return step
+
+    monkeypatch.setattr(trainer_module, "photometric_loss", loss_with_nan)
+    monkeypatch.setattr(trainer_module, "fused_step_gradients", fused_with_nan)
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["fused", "autograd"])
+def test_a_non_finite_step_is_skipped_saved_counted_and_fails_past_the_limit(tmp_path, monkeypatch,
+                                                                              fused):
     import pipeline.fit.trainer as trainer_module
+    from pipeline.splat.compiled import fused_paths
+    with fused_paths(fused):
+        _non_finite_steps_are_skipped(tmp_path, monkeypatch, trainer_module)
+
+
+def _non_finite_steps_are_skipped(tmp_path, monkeypatch, trainer_module):
     g = random_scene(50, seed=0)
     cams = sphere_cameras(2, 16, 16)
     with torch.no_grad():
@@ -175,17 +204,7 @@ def test_a_non_finite_step_is_skipped_saved_counted_and_fails_past_the_limit(tmp
     t = Trainer(g, cams, imgs, tiny_preset(), nonfinite_dir=tmp_path)
     t.train_step()
     poisoned = {"on": "gradient"}
-
-    def with_nan(real_loss):
-        def loss_with_nan(image, target, weight):
-            loss = real_loss(image, target, weight)
-            if poisoned["on"] == "gradient":  # a finite loss whose gradient is NaN (0 * d sqrt(0))
-                return loss + 0 * (image.sum() * 0).sqrt()
-            return loss * float("nan") if poisoned["on"] else loss
-        return loss_with_nan
-
-    for name in ("photometric_loss", "photometric_loss_compiled"):  # whichever the step takes
-        monkeypatch.setattr(trainer_module, name, with_nan(getattr(trainer_module, name)))
+    poison_the_step(monkeypatch, trainer_module, poisoned)
     before = {k: v.detach().clone() for k, v in t.params.items()}
     t.train_step()
     assert t.nonfinite_steps == 1
@@ -488,10 +507,7 @@ def test_a_steps_psnr_is_that_of_its_render_before_the_update_and_nan_when_skipp
             expected = psnr(rendered, imgs[view])
         assert info.psnr == pytest.approx(float(expected), abs=1e-4)
         assert all(p.grad is not None for p in t.params.values())
-    for name in ("photometric_loss", "photometric_loss_compiled"):  # whichever the step takes
-        real_loss = getattr(trainer_module, name)
-        monkeypatch.setattr(trainer_module, name, lambda image, target, w, _real=real_loss:
-                            _real(image, target, w) * float("nan"))
+    poison_the_step(monkeypatch, trainer_module, {"on": "loss"})
     skipped = t.train_step()
     assert math.isnan(skipped.psnr) and math.isnan(skipped.loss)
 

@@ -80,16 +80,16 @@ def test_the_trainer_takes_the_fused_node_on_the_compiled_backend_only():
             training_view_generic
 
 
-def test_the_fused_step_trains_with_the_compiled_loss_and_the_others_with_the_torch_ops(monkeypatch):
+def test_the_fused_step_trains_without_autograd_and_the_others_with_the_torch_ops(monkeypatch):
     import pipeline.fit.trainer as trainer_module
     calls = []
-    for name in ("photometric_loss", "photometric_loss_compiled"):
+    for name in ("photometric_loss", "fused_step_gradients"):
         original = getattr(trainer_module, name)
         monkeypatch.setattr(trainer_module, name,
                             lambda *a, _f=original, _n=name, **k: calls.append(_n) or _f(*a, **k))
     cams = orbit_cameras(2, 16, 12)
     images = torch.rand(2, 12, 16, 3)
-    for backend, fused, want in (("compiled", True, "photometric_loss_compiled"),
+    for backend, fused, want in (("compiled", True, "fused_step_gradients"),
                                  ("compiled", False, "photometric_loss"),
                                  ("tiles", True, "photometric_loss")):
         calls.clear()
@@ -98,6 +98,36 @@ def test_the_fused_step_trains_with_the_compiled_loss_and_the_others_with_the_to
                     FitConfig(iterations=2, sh_degree=0),
                     render_settings=RenderSettings(backend=backend)).train(2)
         assert calls == [want, want], (backend, fused)
+
+
+@pytest.mark.parametrize("dtype,sh_degree,background", [
+    (torch.float32, 3, (0.0, 0.0, 0.0)), (torch.float32, 1, (0.2, 0.5, 0.9)),
+    (F64, 2, (1.0, 1.0, 1.0))])
+def test_the_autograd_free_step_is_the_fused_nodes_through_autograd_to_the_bit(dtype, sh_degree,
+                                                                               background):
+    """``fused_step_gradients`` calls the kernels directly; through autograd the same kernels sit
+    in two nodes (``training_view_compiled``, ``photometric_loss_compiled``). Loss, image, radii,
+    dLoss/dmeans2d and every raw gradient must be equal to the bit (a dropped cast or a missing
+    background term would not be)."""
+    from pipeline.fit.fused_step import fused_step_gradients
+    from pipeline.fit.losses import photometric_loss_compiled
+    cams = orbit_cameras(2, 40, 31, dtype=dtype)
+    g = with_hard_cases(random_scene(600, seed=5, sh_degree=3, dtype=dtype), cams)
+    bg = torch.tensor(background, dtype=dtype)
+    target = torch.rand(31, 40, 3, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    settings = RenderSettings(backend="compiled", tile_size=8)
+    leaves = g.clone().requires_grad_()
+    out = training_view_compiled(leaves, cams[0], bg, sh_degree, settings)
+    loss = photometric_loss_compiled(out.image, target, 0.3)
+    loss.backward()
+    step = fused_step_gradients({k: v.detach() for k, v in g.params().items()}, cams[0], bg,
+                                sh_degree, settings, target, 0.3)
+    assert step.loss == float(loss.detach())
+    assert torch.equal(step.image, out.image.detach()) and torch.equal(step.radii, out.radii)
+    assert torch.equal(step.means2d_grad, out.means2d_grad())
+    for name, grad in leaves.params().items():
+        assert step.grads[name].dtype == dtype and torch.equal(step.grads[name], grad.grad), name
+    assert (step.radii > 0).sum() > 100 and step.grads["means"].abs().sum() > 0
 
 
 def test_fused_and_unfused_training_agree_through_densification():

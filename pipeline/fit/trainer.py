@@ -22,7 +22,8 @@ from tqdm.auto import tqdm
 from pipeline.cameras import Cameras
 from pipeline.fit.config import FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
-from pipeline.fit.losses import photometric_loss, photometric_loss_compiled, psnr
+from pipeline.fit.fused_step import StepGradients, fused_step_gradients
+from pipeline.fit.losses import photometric_loss, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
 from pipeline.splat.gaussians import all_finite
 from pipeline.splat.training_view import fused_training_step, training_view_renderer
@@ -170,26 +171,41 @@ class Trainer:
                 group["lr"] = self._means_lr()
         view = self._next_view()
         cams, target = self._view_cameras[view], self.images[view]
-        renderer = training_view_renderer(self.settings, self.background.device)
-        out = renderer(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
-                       self.settings)
-        image = out.image
-        # the fused step's loss is one compiled node; otherwise the torch ops (its oracle)
-        loss_fn = (photometric_loss_compiled if fused_training_step(self.settings, image.device)
-                   else photometric_loss)
-        loss = loss_fn(image, target, cfg.ssim_weight)
         self._clear_grads()
-        loss.backward()
-        if not self._finite(loss):
-            self._skip(view, float(loss.detach()))
+        if fused_training_step(self.settings, self.background.device):
+            step = self._fused_gradients(cams, target)
+        else:
+            step = self._autograd_gradients(cams, target)
+        if not self._finite(step.loss):
+            self._clear_grads()
+            self._skip(view, step.loss)
             self._density_control()  # keeps periodic events on their schedule
             return StepInfo(self.step, float("nan"), self.params["means"].shape[0])
         if self.step < dcfg.stop:
-            self.stats.update(out.means2d_grad(), out.radii, cams.width, cams.height)
+            self.stats.update(step.means2d_grad, step.radii, cams.width, cams.height)
         self.optimizer.step()
         self._density_control()
-        return StepInfo(self.step, float(loss.detach()), self.params["means"].shape[0],
-                        image.detach(), target)
+        return StepInfo(self.step, step.loss, self.params["means"].shape[0], step.image, target)
+
+    def _fused_gradients(self, cams: Cameras, target: Tensor) -> StepGradients:
+        """The fused compiled step, no autograd: loss and gradients from the kernels, the
+        gradients set on the parameters."""
+        step = fused_step_gradients(self.params, cams, self.background, self.active_sh_degree,
+                                    self.settings, target, self.config.ssim_weight)
+        for name, p in self.params.items():
+            p.grad = step.grads[name]
+        return step
+
+    def _autograd_gradients(self, cams: Cameras, target: Tensor) -> StepGradients:
+        """The step through autograd: ``render`` (any backend) or the one-node compiled render,
+        and the torch loss (the oracles of the fused step)."""
+        renderer = training_view_renderer(self.settings, self.background.device)
+        out = renderer(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
+                       self.settings)
+        loss = photometric_loss(out.image, target, self.config.ssim_weight)
+        loss.backward()
+        return StepGradients(float(loss.detach()), {}, out.image.detach(), out.radii,
+                             out.means2d_grad())
 
     def _clear_grads(self) -> None:
         """``optimizer.zero_grad(set_to_none=True)`` without its profiler hooks (a step's
@@ -197,8 +213,8 @@ class Trainer:
         for p in self.params.values():
             p.grad = None
 
-    def _finite(self, loss: Tensor) -> bool:
-        if not bool(torch.isfinite(loss)):
+    def _finite(self, loss: float) -> bool:
+        if not math.isfinite(loss):
             return False
         return all_finite([p.grad for p in self.params.values() if p.grad is not None])
 

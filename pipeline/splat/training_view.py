@@ -52,6 +52,62 @@ class _GradSink:
     value: Tensor | None = None
 
 
+@dataclass
+class CompiledForward:
+    """One view's fused forward as NumPy arrays (what its backward reads): the raw parameters
+    ``arrays`` (means, log_scales, quats, logit_opacities, sh0, shN), the kernel ``camera``, the
+    bins, the visible colours, final transmittance and walked lengths; rgb [H, W, 3] (with the
+    background) and radii [N] int64 are its outputs."""
+
+    arrays: tuple
+    camera: tuple
+    bins: compiled.CompiledBins
+    colors: np.ndarray
+    final: np.ndarray
+    walked: np.ndarray
+    background: np.ndarray
+    rgb: np.ndarray
+    radii: np.ndarray
+
+
+def compiled_forward(arrays: tuple, camera: tuple, background: np.ndarray, tile_size: int,
+                     workers: int) -> CompiledForward:
+    """Projection, binning and compositing of the colour channels (``render``'s casts on the
+    compiled backend: projection outputs in the parameters' dtype; culled Gaussians' colours are
+    not computed, no tile lists them)."""
+    np_dtype = arrays[0].dtype
+    means2d, conics, depths, radii, colors, opacities = compiled.project_visible_arrays(
+        arrays, camera, workers)
+    _, _, width, height, _, _ = camera
+    bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width, height,
+                                 tile_size, workers)
+    image, final, walked = bins.forward(colors, workers)
+    alpha = 1 - final.astype(np_dtype)  # as ``rasterize_compiled``: 1 - final, params' dtype
+    rgb = np.ascontiguousarray(image + (1 - alpha)[..., None] * background, dtype=np_dtype)
+    return CompiledForward(arrays, camera, bins, colors, final, walked, background, rgb, radii)
+
+
+def compiled_backward(fwd: CompiledForward, g_rgb: np.ndarray, workers: int):
+    """(raw parameter gradients (6 arrays, the parameters' dtype), dLoss/dmeans2d [N, 2]) from
+    dLoss/drgb [H, W, 3]: compositing's backward rows summed per Gaussian into the parameters'
+    dtype (as the unfused path's autograd does), then the projection's backward."""
+    kernels, bins, n = compiled.load(), fwd.bins, fwd.arrays[0].shape[0]
+    # rgb = image + (1 - alpha) bg with alpha = 1 - final: dL/dfinal = sum_c dL/drgb_c bg_c
+    g_final = (g_rgb * fwd.background).sum(-1)
+    row_start, row_ids = bins.walked_rows(fwd.walked)
+    rows = kernels.composite_backward(
+        bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0], bins.packed, fwd.colors,
+        fwd.final, fwd.walked, g_rgb.astype(np.float64), g_final.astype(np.float64),
+        bins.tiles_x, bins.tile_size, workers)
+    per_gauss = kernels.sum_rows(row_ids, rows, n, fwd.colors)  # params' dtype
+    g_means2d = np.ascontiguousarray(per_gauss[:, 0:2])
+    f64 = np.float64
+    grads = compiled.projection_kernels().project_backward(
+        *fwd.arrays, *fwd.camera, g_means2d.astype(f64), per_gauss[:, 2:5].astype(f64),
+        np.zeros(n), per_gauss[:, 6:9].astype(f64), per_gauss[:, 5].astype(f64), workers)
+    return grads, g_means2d
+
+
 class _CompiledTrainingView(torch.autograd.Function):
     """Raw parameters -> (image [H, W, 3], radii [N]); backward -> raw parameter gradients, with
     dLoss/dmeans2d written to the sink."""
@@ -59,67 +115,46 @@ class _CompiledTrainingView(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, log_scales, quats, logit_opacities, sh0, shN, camera, background,
                 tile_size, sink):
-        dtype = means.dtype
-        np_dtype = compiled.to_numpy(means[:0]).dtype
-        workers = compiled.use_threads()
         arrays = tuple(compiled.to_numpy(x) for x in (means, log_scales, quats, logit_opacities, sh0,
                                                       shN))
-        # outputs in the params' dtype (the casts of ``render`` on the compiled backend); culled
-        # Gaussians' colours are not computed: no tile lists them
-        means2d, conics, depths, radii, colors, opacities = compiled.project_visible_arrays(
-            arrays, camera, workers)
-        _, _, width, height, _, _ = camera
-        bins = compiled.CompiledBins(means2d, conics, opacities, radii, depths, width, height,
-                                     tile_size, workers)
-        image, final, walked = bins.forward(colors, workers)
-        bg = compiled.to_numpy(background)
-        alpha = 1 - final.astype(np_dtype)  # as ``rasterize_compiled``: 1 - final, params' dtype
-        rgb = image + (1 - alpha)[..., None] * bg
-        ctx.arrays, ctx.camera, ctx.bins, ctx.colors = arrays, camera, bins, colors
-        ctx.final, ctx.walked, ctx.bg, ctx.sink, ctx.n = final, walked, bg, sink, means.shape[0]
-        ctx.dtype = dtype
-        radii_t = torch.from_numpy(radii)
+        fwd = compiled_forward(arrays, camera, compiled.to_numpy(background), tile_size,
+                               compiled.use_threads())
+        ctx.fwd, ctx.sink, ctx.dtype = fwd, sink, means.dtype
+        radii_t = torch.from_numpy(fwd.radii)
         ctx.mark_non_differentiable(radii_t)
-        return torch.from_numpy(np.ascontiguousarray(rgb, dtype=np_dtype)), radii_t
+        return torch.from_numpy(fwd.rgb), radii_t
 
     @staticmethod
     def backward(ctx, grad_rgb, _grad_radii):
-        kernels, bins = compiled.load(), ctx.bins
-        workers = compiled.use_threads()
-        g_rgb = compiled.to_numpy(grad_rgb)
-        # rgb = image + (1 - alpha) bg with alpha = 1 - final: dL/dfinal = sum_c dL/drgb_c bg_c
-        g_final = (g_rgb * ctx.bg).sum(-1)
-        row_start, row_ids = bins.walked_rows(ctx.walked)
-        rows = kernels.composite_backward(
-            bins.gauss_ids, bins.offsets, row_start, row_ids.shape[0], bins.packed, ctx.colors,
-            ctx.final, ctx.walked, g_rgb.astype(np.float64), g_final.astype(np.float64),
-            bins.tiles_x, bins.tile_size, workers)
-        per_gauss = kernels.sum_rows(row_ids, rows, ctx.n, ctx.colors)  # params' dtype
-        g_means2d = np.ascontiguousarray(per_gauss[:, 0:2])
+        grads, g_means2d = compiled_backward(ctx.fwd, compiled.to_numpy(grad_rgb),
+                                             compiled.use_threads())
         ctx.sink.value = torch.from_numpy(g_means2d)
-        f64 = np.float64
-        grads = compiled.projection_kernels().project_backward(
-            *ctx.arrays, *ctx.camera, g_means2d.astype(f64), per_gauss[:, 2:5].astype(f64),
-            np.zeros(ctx.n), per_gauss[:, 6:9].astype(f64), per_gauss[:, 5].astype(f64), workers)
         return (*(torch.from_numpy(x).to(ctx.dtype) for x in grads), None, None, None, None)
 
 
 def training_view_compiled(gaussians: Gaussians, camera: Cameras, background: Tensor,
                            sh_degree: int, settings: RenderSettings) -> TrainingView:
     """The fused compiled twin of ``training_view_generic`` (CPU tensors only)."""
-    from pipeline.splat.project import active_sh_degree
-    if compiled.load() is None:
-        raise RuntimeError(f"backend 'compiled' cannot load: {compiled.load_error()}")
-    degree = active_sh_degree(gaussians, sh_degree)
-    camera = camera.to(device=gaussians.means.device, dtype=gaussians.means.dtype)  # as ``render``
-    cam = compiled.kernel_camera(camera.viewmats[0], camera.Ks[0], camera.width, camera.height,
-                                 degree, settings.near)
+    cam = training_camera(gaussians, camera, sh_degree, settings)
     sink = _GradSink()
     image, radii = _CompiledTrainingView.apply(
         gaussians.means, gaussians.log_scales, gaussians.quats, gaussians.logit_opacities,
         gaussians.sh0, gaussians.shN, cam, background.to(gaussians.means.dtype), settings.tile_size,
         sink)
     return TrainingView(image, radii, lambda: sink.value)
+
+
+def training_camera(gaussians: Gaussians, camera: Cameras, sh_degree: int,
+                    settings: RenderSettings) -> tuple:
+    """The kernel camera (``compiled.kernel_camera``) of one camera [1] for a fused step: cast to
+    the parameters' dtype first, as ``render`` does; the SH degree checked against the stored one."""
+    from pipeline.splat.project import active_sh_degree
+    if compiled.load() is None:
+        raise RuntimeError(f"backend 'compiled' cannot load: {compiled.load_error()}")
+    degree = active_sh_degree(gaussians, sh_degree)
+    camera = camera.to(device=gaussians.means.device, dtype=gaussians.means.dtype)  # as ``render``
+    return compiled.kernel_camera(camera.viewmats[0], camera.Ks[0], camera.width, camera.height,
+                                  degree, settings.near)
 
 
 def training_view_renderer(settings: RenderSettings, device: torch.device):
