@@ -407,8 +407,8 @@ def _span_cases():
     det = sxx * syy - sxy ** 2
     conics = np.stack([syy / det, -sxy / det, sxx / det], 1)
     alpha_min = 1 / 255
-    opacities = np.concatenate([rng.uniform(0.01, 1, n - 6),
-                                [alpha_min, alpha_min * (1 + 1e-9), alpha_min * (1 - 1e-9), 1.0, 0.0, 1e-3]])
+    edges = [alpha_min, alpha_min * (1 + 1e-9), alpha_min * (1 - 1e-9), 1.0, 0.0, 1e-3]
+    opacities = np.concatenate([rng.uniform(0.01, 1, n - len(edges)), edges])
     return compiled.load().pack(means2d, conics, opacities)
 
 

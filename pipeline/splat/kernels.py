@@ -607,8 +607,9 @@ def _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background,
     then ``_fisher_tile``): the forward keeps each composited pair's alpha in ``alphas``
     [>= counts[t], tile_size^2] (0 for a pair it skipped or never reached), so the walk back reads
     it instead of recomputing the pair (its exponential), and no pixel needs a walked length:
-    a zero alpha is a pair the pixel never composited. Rows go to rows_out[offsets[t] + j];
-    returns the tile's walked length (the rows written are j < it)."""
+    a zero alpha is a pair the pixel never composited. Both walks visit only the pair's box
+    (``_span``), so alphas outside it are never written or read. Rows go to
+    rows_out[offsets[t] + j]; returns the tile's walked length (the rows written are j < it)."""
     xs = np.empty(tile_size * tile_size, dtype=np.int64)
     ys = np.empty(tile_size * tile_size, dtype=np.int64)
     npix = _tile_pixels(t, tiles_x, tile_size, width, height, xs, ys)
@@ -620,12 +621,11 @@ def _walk_fisher_tile(t, gauss_ids, offsets, counts, packed, colors, background,
     start, count = offsets[t], counts[t]
     for j in range(count):
         row = packed[gauss_ids[start + j]]
-        for p in range(npix):
-            alphas[j, p] = 0.0
         lx0, lx1 = _span(row[0], row[7], x0, tw)
         ly0, ly1 = _span(row[1], row[8], y0, th)
-        for ly in range(ly0, ly1):
+        for ly in range(ly0, ly1):  # the walk back reads this box only
             for p in range(ly * tw + lx0, ly * tw + lx1):
+                alphas[j, p] = 0.0
                 if done[p]:
                     continue
                 alpha, _, _, _, _ = _pair(px[p], py[p], row)
