@@ -259,8 +259,9 @@ def test_compiled_projection_matches_torch_projection_values_and_gradients(sh_de
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_projection_of_the_visible_colours_equals_the_full_projection_where_visible(dtype):
-    """The fused paths' projection computes the colour of visible Gaussians only; every other
-    output equals ``project_compiled``'s to the bit, and so does every visible colour."""
+    """The fused paths' projection computes the colour and conic of visible Gaussians only (and
+    culls most others before building their covariance); every other output equals
+    ``project_compiled``'s to the bit, and so does every visible colour and conic."""
     g, cams = projection_cases()
     g = Gaussians(**{k: v.to(dtype) for k, v in g.params().items()})
     full = compiled.project_compiled(g, cams.viewmats[0], cams.Ks[0], 60, 50, 3)
@@ -268,12 +269,46 @@ def test_projection_of_the_visible_colours_equals_the_full_projection_where_visi
     part = compiled.project_visible(arrays, cams.viewmats[0], cams.Ks[0], 60, 50, 3, 0.01, 1)
     visible = full.radii > 0
     assert visible.any() and (~visible).any()
-    for field in ("means2d", "conics", "depths", "radii", "opacities"):
+    for field in ("means2d", "depths", "radii", "opacities"):
         assert getattr(part, field).dtype == getattr(full, field).dtype, field
         assert torch.equal(getattr(part, field), getattr(full, field)), field
-    assert part.colors.dtype == dtype
-    assert torch.equal(part.colors[visible], full.colors[visible])
-    assert (part.colors[~visible] == 0).all() and (full.colors[~visible] != 0).any()
+    for field in ("colors", "conics"):
+        got, want = getattr(part, field), getattr(full, field)
+        assert got.dtype == dtype
+        assert torch.equal(got[visible], want[visible]), field
+        assert (got[~visible] == 0).all() and (want[~visible] != 0).any(), field
+
+
+@pytest.mark.parametrize("view_scale", [1.0, 1.7])
+def test_a_gaussian_culled_before_its_covariance_is_culled_by_the_full_rule(view_scale):
+    """``_surely_off_image`` bounds the radius from the camera-space mean, the largest scale and
+    the view's stretch: whenever it culls, the full rule (covariance, eigenvalue, radius, on-image
+    test) must give radius 0, on Gaussians of every size just off every edge of the image, behind
+    the camera and past the clamped field of view, for a rigid view and a scaled one (a view
+    matrix that is not a rotation). And it must cull most of the far ones."""
+    import numpy as np
+    pk = compiled.projection_kernels()
+    cams = orbit_cameras(1, 60, 50, dtype=F64, radius=2.5)
+    view = cams.viewmats[0].clone()
+    view[:3, :3] *= view_scale
+    rng = np.random.default_rng(11)
+    n = 20000
+    cam_means = np.stack([rng.uniform(-4, 4, n), rng.uniform(-4, 4, n), rng.uniform(-1, 4, n)], 1)
+    c2w = torch.linalg.inv(view).numpy()
+    means = cam_means @ c2w[:3, :3].T + c2w[:3, 3]
+    log_scales = rng.uniform(np.log(1e-3), np.log(2.0), (n, 3))
+    quats = rng.normal(size=(n, 4))
+    arrays = (means, log_scales, quats, rng.normal(size=n), rng.normal(size=(n, 1, 3)),
+              rng.normal(size=(n, 15, 3)))
+    camera = compiled.kernel_camera(view, cams.Ks[0], 60, 50, 3, 0.01)
+    _, _, _, radii, _, _ = pk.project_forward(*arrays, *camera, 1, True)  # the full rule
+    stretch = pk._view_stretch(camera[0])
+    surely = np.array([pk._surely_off_image(g, *(camera[0][:3, :3] @ means[g] + camera[0][:3, 3]),
+                                            log_scales, camera[1], 60, 50, 0.01, stretch)
+                       for g in range(n)])
+    assert not (surely & (radii > 0)).any()
+    culled = radii == 0
+    assert (radii > 0).sum() > 500 and surely.sum() > 0.6 * culled.sum()
 
 
 @pytest.mark.parametrize("sh_degree", [None, 2])

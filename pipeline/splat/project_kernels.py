@@ -149,10 +149,11 @@ def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, i
                     sh_degree, near, workers, all_colors=True):
     """Per Gaussian: means2d [N, 2], conics [N, 3], depths [N], radii [N] int64, colors [N, 3],
     opacities [N] (float64). view [4, 4] world->camera; intr = (fx, fy, cx, cy).
-    ``all_colors`` False: the SH colour only of the Gaussians with radius > 0, every culled one's
-    colour left 0 (no tile lists a culled Gaussian, so nothing composited reads it; at 64 px most
-    of a real scene's Gaussians are culled in any one view and the degree-3 SH is ~40% of the
-    projection).
+    ``all_colors`` False: the SH colour and the conic only of the Gaussians with radius > 0, every
+    culled one's left 0 (no tile lists a culled Gaussian, so nothing composited reads them; at 64
+    px most of a real scene's Gaussians are culled in any one view and the degree-3 SH is ~40% of
+    the projection), and a Gaussian behind the near plane or whose radius cannot reach the image
+    (``_surely_off_image``) is culled before its covariance is built.
 
     The Gaussians are cut into ``workers`` contiguous blocks, one per parallel iteration; each
     block's body is a plain function with its own scratch arrays (numba hoists ``np.empty`` out of
@@ -162,26 +163,74 @@ def project_forward(means, log_scales, quats, logit_opacities, sh0, shn, view, i
     means2d, conics = np.empty((n, 2), dtype), np.empty((n, 3), dtype)
     depths, radii = np.empty(n, dtype), np.zeros(n, dtype=np.int64)
     colors, opacities = np.empty((n, 3), dtype), np.empty(n, dtype)
+    stretch = _view_stretch(view)
     if workers == 1:  # no parallel region: no idle pool threads spinning beside the job
         _forward_block(0, n, means, log_scales, quats,
                        logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
-                       all_colors, means2d, conics, depths, radii, colors, opacities)
+                       all_colors, stretch, means2d, conics, depths, radii, colors, opacities)
     else:
         for w in prange(workers):
             _forward_block(w * n // workers, (w + 1) * n // workers, means, log_scales, quats,
                            logit_opacities, sh0, shn, view, intr, width, height, sh_degree, near,
-                           all_colors, means2d, conics, depths, radii, colors, opacities)
+                           all_colors, stretch, means2d, conics, depths, radii, colors, opacities)
     return means2d, conics, depths, radii, colors, opacities
+
+
+@njit(cache=True)
+def _view_stretch(view):
+    """An upper bound on |W v|^2 / |v|^2 for the view's 3 x 3 block W: the largest eigenvalue
+    of W^T W is at most 1 + 3 max |W^T W - I| (about 1 for a rotation stored in float32), and at
+    most the squared Frobenius norm."""
+    frobenius, off = 0.0, 0.0
+    for i in range(3):
+        for j in range(3):
+            frobenius += view[i, j] ** 2
+            dot = view[0, i] * view[0, j] + view[1, i] * view[1, j] + view[2, i] * view[2, j]
+            off = max(off, abs(dot - (1.0 if i == j else 0.0)))
+    return min(1.0 + 3.0 * off + 1e-12, frobenius)  # |W|_2^2 <= 1 + |W^T W - I|_2
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _surely_off_image(g, x, y, z, log_scales, intr, width, height, near, stretch):
+    """True when Gaussian g (camera-space mean x, y, z) is surely culled: behind the near plane,
+    or its radius (``_forward_block``'s rule) cannot reach the image. That radius is
+    ceil(3 sqrt(mid + sqrt(max(mid^2 - det, 0.1)))) <= ceil(3 sqrt(a + c + 0.32)), and
+    a + c = |J W R S|_F^2 + 2 EPS <= |J|_F^2 stretch s_max^2 + 2 EPS (R a rotation, s_max the
+    largest scale); the bound is widened for rounding. NaN anywhere: False (the full rule)."""
+    if not z > near:
+        return not z != z  # behind (a NaN depth takes the full rule)
+    fx, fy = intr[0], intr[1]
+    lim_x, lim_y = CLAMP_FOV * 0.5 * width / fx, CLAMP_FOV * 0.5 * height / fy
+    rx, ry = min(max(x / z, -lim_x), lim_x), min(max(y / z, -lim_y), lim_y)
+    jac2 = (fx * fx + fy * fy + (fx * rx) ** 2 + (fy * ry) ** 2) / (z * z)
+    s_max = math.exp(max(log_scales[g, 0], log_scales[g, 1], log_scales[g, 2]))
+    bound = jac2 * stretch * s_max * s_max + 2.0 * EPS_2D + 0.32
+    reach = 3.0 * math.sqrt(bound * (1.0 + 1e-6)) + 2.0
+    u, v = fx * x / z + intr[2], fy * y / z + intr[3]
+    return u + reach <= 0.0 or u - reach >= width or v + reach <= 0.0 or v - reach >= height
 
 
 @njit(cache=True, error_model="numpy")
 def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, view, intr, width,
-                   height, sh_degree, near, all_colors, means2d, conics, depths, radii, colors,
-                   opacities):
+                   height, sh_degree, near, all_colors, stretch, means2d, conics, depths, radii,
+                   colors, opacities):
     bases = (sh_degree + 1) ** 2
     jac, rs, m = np.empty((2, 3)), np.empty((3, 3)), np.empty((2, 3))
     qn, rot, basis, d = np.empty(4), np.empty((3, 3)), np.empty(16), np.empty(3)
     for g in range(lo, hi):
+        if not all_colors:  # a surely culled Gaussian: the outputs the full rule gives it
+            mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
+            x = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
+            y = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
+            z = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
+            if _surely_off_image(g, x, y, z, log_scales, intr, width, height, near, stretch):
+                zz = z if z > near else 1.0
+                means2d[g, 0], means2d[g, 1] = intr[0] * x / zz + intr[2], intr[1] * y / zz + intr[3]
+                depths[g] = z
+                opacities[g] = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
+                for i in range(3):
+                    conics[g, i] = colors[g, i] = 0.0
+                continue
         x, y, z, zz, in_front, _, _, _, _, finite, _ = _geometry(
             g, means, log_scales, quats, view, intr, width, height, near, jac, rs, m, qn, rot)
         a, b, c, det = _conic_terms(m)
@@ -196,7 +245,8 @@ def _forward_block(lo, hi, means, log_scales, quats, logit_opacities, sh0, shn, 
             radii[g] = int(radius)
         opacities[g] = 1.0 / (1.0 + math.exp(-logit_opacities[g]))
         if not all_colors and radii[g] == 0:
-            colors[g, 0] = colors[g, 1] = colors[g, 2] = 0.0
+            for i in range(3):
+                conics[g, i] = colors[g, i] = 0.0
             continue
         # view direction camera centre -> Gaussian: m + W^T t, normalised
         for i in range(3):
