@@ -10,9 +10,10 @@ Each fast op has a slow, obviously correct twin that the tests compare it with:
 | Fisher walk | ``fisher.exact.feature_fisher`` (``ViewWalk``) | ``fisher.exact.feature_fisher_compiled`` |
 | feature Jacobian | ``fisher.features.feature_jacobian`` | ``fisher.features.feature_jacobian_compiled`` |
 | training view (render + both backwards, one node) | ``training_view.training_view_generic`` | ``training_view.training_view_compiled`` |
+| training step's loss and gradients | the training view + ``fit.losses.photometric_loss`` through autograd | ``fit.fused_step.fused_step_gradients`` (no autograd; bit-equal to ``training_view_compiled`` + ``photometric_loss_compiled``) |
 | Fisher diagonal per view | ``FeatureJacobian.fisher_diagonal`` of the walk's G | ``fisher.diagonal_kernels.fisher_diagonal`` (``exact.view_fisher_fused`` / ``view_fisher_sparse``) |
 
-The last two are the fused paths: on by default, ``compiled.fused_paths(False)`` turns them off
+The last three are the fused paths: on by default, ``compiled.fused_paths(False)`` turns them off
 (the benchmarks' ``compiled-unfused``); ``training_view.training_view_renderer`` and
 ``exact.fused_fisher_available`` resolve them.
 
