@@ -19,7 +19,7 @@ from torch import Tensor
 
 from pipeline.cameras import Cameras
 from pipeline.fit import loss_kernels
-from pipeline.fit.losses import _taps
+from pipeline.fit.losses import window_taps
 from pipeline.splat import compiled
 from pipeline.splat.gaussians import Gaussians
 from pipeline.splat.render import RenderSettings
@@ -57,7 +57,7 @@ def fused_step_gradients(params: dict[str, Tensor], camera: Cameras, background:
     bg = compiled.to_numpy(background.to(params["means"].dtype))
     fwd = compiled_forward(arrays, cam, bg, settings.tile_size, workers)
     value, grad = loss_kernels.photometric_value_and_grad(
-        fwd.rgb, compiled.to_numpy(target), float(ssim_weight), _taps(11, 1.5), workers)
+        fwd.rgb, compiled.to_numpy(target), float(ssim_weight), window_taps(11, 1.5), workers)
     grads, g_means2d = compiled_backward(fwd, grad.astype(dtype), workers)
     return StepGradients(float(np.asarray(value, dtype=dtype)),
                          {name: torch.from_numpy(g) for name, g in zip(PARAM_ORDER, grads)},

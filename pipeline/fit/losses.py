@@ -64,7 +64,7 @@ class _CompiledPhotometricLoss(torch.autograd.Function):
         from pipeline.splat import compiled
         value, grad = loss_kernels.photometric_value_and_grad(
             img.detach().contiguous().numpy(), ref.detach().contiguous().numpy(),
-            float(ssim_weight), _taps(11, 1.5), compiled.use_threads())
+            float(ssim_weight), window_taps(11, 1.5), compiled.use_threads())
         ctx.grad = torch.from_numpy(grad).to(img.dtype)
         return img.new_tensor(value)
 
@@ -74,7 +74,8 @@ class _CompiledPhotometricLoss(torch.autograd.Function):
 
 
 @functools.lru_cache(maxsize=4)
-def _taps(size: int, sigma: float):
+def window_taps(size: int, sigma: float):
+    """The 1-D SSIM window [size] float64 the compiled loss takes (cached; read only)."""
     from pipeline.fit import loss_kernels
     return loss_kernels.gaussian_taps(size, sigma)
 
