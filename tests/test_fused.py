@@ -19,8 +19,8 @@ from pipeline.splat import Gaussians, RenderSettings, compiled, render
 from pipeline.splat.compiled import fused_paths
 from pipeline.splat.project import project
 from pipeline.splat.scenes import orbit_cameras, random_scene
-from pipeline.splat.training_view import (training_view_compiled, training_view_generic,
-                                          training_view_renderer)
+from pipeline.splat.training_view import (fused_training_step, training_view_compiled,
+                                          training_view_generic)
 from tests.test_compiled import with_hard_cases
 
 pytestmark = pytest.mark.skipif(compiled.load() is None,
@@ -71,13 +71,12 @@ def test_fused_training_view_equals_render_and_the_dense_oracle(dtype, sh_degree
     assert fused.image.dtype == dtype and fused_grads["means"].dtype == dtype
 
 
-def test_the_trainer_takes_the_fused_node_on_the_compiled_backend_only():
+def test_the_trainer_takes_the_fused_step_on_the_compiled_backend_only():
     cpu = torch.device("cpu")
-    assert training_view_renderer(RenderSettings(backend="compiled"), cpu) is training_view_compiled
-    assert training_view_renderer(RenderSettings(backend="tiles"), cpu) is training_view_generic
+    assert fused_training_step(RenderSettings(backend="compiled"), cpu)
+    assert not fused_training_step(RenderSettings(backend="tiles"), cpu)
     with fused_paths(False):
-        assert training_view_renderer(RenderSettings(backend="compiled"), cpu) is \
-            training_view_generic
+        assert not fused_training_step(RenderSettings(backend="compiled"), cpu)
 
 
 def test_the_fused_step_trains_without_autograd_and_the_others_with_the_torch_ops(monkeypatch):

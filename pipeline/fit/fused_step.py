@@ -31,7 +31,8 @@ PARAM_ORDER = ("means", "log_scales", "quats", "logit_opacities", "sh0", "shN")
 @dataclass
 class StepGradients:
     """loss: the step's loss (rounded to the image's dtype); grads: dLoss/d each raw parameter,
-    by name, in its dtype; image [H, W, 3] (with the background); radii [N] int64 (0 = culled);
+    by name, in its dtype (empty from the trainer's autograd path, which leaves them on the
+    parameters); image [H, W, 3] (with the background); radii [N] int64 (0 = culled);
     means2d_grad [N, 2]: dLoss/dmeans2d, which densification reads."""
 
     loss: float

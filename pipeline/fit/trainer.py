@@ -26,7 +26,7 @@ from pipeline.fit.fused_step import StepGradients, fused_step_gradients
 from pipeline.fit.losses import photometric_loss, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
 from pipeline.splat.gaussians import all_finite
-from pipeline.splat.training_view import fused_training_step, training_view_renderer
+from pipeline.splat.training_view import fused_training_step, training_view_generic
 
 
 NONFINITE_STEP_LIMIT = 10
@@ -197,11 +197,10 @@ class Trainer:
         return step
 
     def _autograd_gradients(self, cams: Cameras, target: Tensor) -> StepGradients:
-        """The step through autograd: ``render`` (any backend) or the one-node compiled render,
-        and the torch loss (the oracles of the fused step)."""
-        renderer = training_view_renderer(self.settings, self.background.device)
-        out = renderer(self.gaussians_for_grad(), cams, self.background, self.active_sh_degree,
-                       self.settings)
+        """The step through autograd: ``render`` (any backend) and the torch loss (the oracles of
+        the fused step); the gradients land on the parameters (``grads`` is empty)."""
+        out = training_view_generic(self.gaussians_for_grad(), cams, self.background,
+                                    self.active_sh_degree, self.settings)
         loss = photometric_loss(out.image, target, self.config.ssim_weight)
         loss.backward()
         return StepGradients(float(loss.detach()), {}, out.image.detach(), out.radii,

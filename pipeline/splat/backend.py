@@ -14,7 +14,7 @@ Each fast op has a slow, obviously correct twin that the tests compare it with:
 | Fisher diagonal per view | ``FeatureJacobian.fisher_diagonal`` of the walk's G | ``fisher.diagonal_kernels.fisher_diagonal`` (``exact.view_fisher_fused`` / ``view_fisher_sparse``) |
 
 The last three are the fused paths: on by default, ``compiled.fused_paths(False)`` turns them off
-(the benchmarks' ``compiled-unfused``); ``training_view.training_view_renderer`` and
+(the benchmarks' ``compiled-unfused``); ``training_view.fused_training_step`` and
 ``exact.fused_fisher_available`` resolve them.
 
 The Fisher twins live in ``fisher/`` (which builds on ``splat/``, not the other way round); their

@@ -86,8 +86,8 @@ def auto_backend(name: str):
 
 @contextmanager
 def fused_paths(enabled: bool):
-    """Within the block, the fused compiled paths (the training step's one-node render and its
-    compiled loss, the Fisher's per-view diagonal and the compiled scores) are used when
+    """Within the block, the fused compiled paths (the training step without autograd,
+    ``fit.fused_step``; the Fisher's per-view diagonal and the compiled scores) are used when
     ``enabled`` (the default outside any block), else the unfused compiled ops they replace: how
     ``bench episode`` times both in one process and how the tests compare them."""
     before = _STATE.get("fused", True)
@@ -316,10 +316,10 @@ def project_compiled(gaussians, viewmat: Tensor, K: Tensor, width: int, height: 
 
 def project_visible_arrays(arrays: tuple, camera: tuple, workers: int) -> tuple:
     """``project_forward`` of the raw parameters as NumPy ``arrays`` (means, log_scales, quats,
-    logit_opacities, sh0, shN) for ``camera`` (``kernel_camera``) with the colour of visible
-    Gaussians only (``all_colors`` False: a culled one's is 0, and no tile lists it): (means2d,
-    conics, depths, radii, colors, opacities), in the parameters' dtype as ``project_compiled``
-    casts them (the kernel writes them in it already, so no copy)."""
+    logit_opacities, sh0, shN) for ``camera`` (``kernel_camera``) with the colour and conic of
+    visible Gaussians only (``all_colors`` False: a culled one's are 0, and no tile lists it):
+    (means2d, conics, depths, radii, colors, opacities), in the parameters' dtype as
+    ``project_compiled`` casts them (the kernel writes them in it already, so no copy)."""
     np_dtype = arrays[0].dtype
     outs = projection_kernels().project_forward(*arrays, *camera, workers, False)
     return tuple(x if x.dtype == np.int64 else x.astype(np_dtype, copy=False) for x in outs)
@@ -328,7 +328,7 @@ def project_visible_arrays(arrays: tuple, camera: tuple, workers: int) -> tuple:
 def project_visible(arrays: tuple, viewmat: Tensor, K: Tensor, width: int, height: int,
                     sh_degree: int, near: float, workers: int):
     """``project_compiled``'s values without autograd (``project_visible_arrays``) as a
-    ``Projection``; culled Gaussians (radius 0) have colour 0."""
+    ``Projection``; culled Gaussians (radius 0) have colour and conic 0."""
     from pipeline.splat.project import Projection
     camera = kernel_camera(viewmat, K, width, height, sh_degree, near)
     return Projection(*(torch.from_numpy(x) for x in project_visible_arrays(arrays, camera, workers)))

@@ -8,8 +8,9 @@ settings) -> TrainingView``:
   node (``_CompiledTrainingView``), NumPy between the kernels, only the colour channels composited
   (``render`` also composites depth, which the loss never reads). Same casts as ``render`` on the
   compiled backend (projection outputs in the parameters' dtype, rows summed into it), so the
-  image and every gradient equal that path's to float rounding. Most of a step's torch ops and
-  autograd nodes disappear with it (issue 27: a third of a step was spent outside the kernels).
+  image and every gradient equal that path's to float rounding. Its forward and backward are the
+  array functions ``compiled_forward`` / ``compiled_backward``, which the trainer's fused step
+  (``fit.fused_step``) calls without autograd; this node is that step's autograd twin in tests.
 """
 
 from __future__ import annotations
@@ -157,15 +158,10 @@ def training_camera(gaussians: Gaussians, camera: Cameras, sh_degree: int,
                                   degree, settings.near)
 
 
-def training_view_renderer(settings: RenderSettings, device: torch.device):
-    """The twin for ``settings.backend`` on ``device``: fused when it resolves to ``compiled``
-    (and ``compiled.fused_paths`` has not turned the fused paths off)."""
-    if fused_training_step(settings, device):
-        return training_view_compiled
-    return training_view_generic
-
-
 def fused_training_step(settings: RenderSettings, device: torch.device) -> bool:
-    """Whether a training step on ``device`` takes the fused compiled paths: the one-node render
-    (``training_view_compiled``) and the compiled loss (``fit.losses.photometric_loss_compiled``)."""
+    """Whether a training step on ``device`` takes the fused compiled path
+    (``fit.fused_step.fused_step_gradients``: this module's array forward and backward and the
+    compiled loss, no autograd): when the backend resolves to ``compiled`` and
+    ``compiled.fused_paths`` has not turned the fused paths off. Otherwise the step goes through
+    autograd with ``training_view_generic`` and the torch loss."""
     return compiled.resolve_backend(settings.backend, device) == "compiled" and compiled.fused_enabled()
