@@ -1,4 +1,5 @@
-"""Acquisition strategies behind one protocol, with an explicit registry (no import magic)."""
+"""Acquisition strategies behind one protocol: the built-ins in an explicit registry; strategies
+from outside the package through ``discovery`` (entry points ``gopre.strategies`` or a dotted path)."""
 
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.acquisition.base import Selection, SelectionContext, Strategy
@@ -27,13 +28,20 @@ POSE_SCORING = tuple(name for name, cls in REGISTRY.items() if hasattr(cls, "pos
 
 
 def make_strategy(name: str, **options) -> Strategy:
-    """Build a strategy by registry key; unknown names or options fail with a clear error."""
-    if name not in REGISTRY:
-        raise ValueError(f"unknown strategy {name!r}; available: {sorted(REGISTRY)}")
+    """Build a strategy by built-in name, installed plugin name (entry point group
+    ``gopre.strategies``) or ``package.module:Class`` (``discovery.resolve_strategy``); unknown
+    names, plugins that cannot load, and bad options fail with a clear one-line error."""
+    from pipeline.acquisition.discovery import resolve_strategy
+    cls = resolve_strategy(name).cls
     try:
-        return REGISTRY[name](**options)
+        return cls(**options)
     except TypeError as err:
         raise ValueError(f"strategy {name!r}: bad options {sorted(options)} ({err})") from None
+
+
+def scores_any_pose(strategy) -> bool:
+    """Whether a strategy can score a camera off the pool (it has ``pose_scorer``)."""
+    return callable(getattr(strategy, "pose_scorer", None))
 
 
 __all__ = ["POSE_SCORING", "REGISTRY", "Selection", "SelectionContext", "Strategy", "make_strategy"]

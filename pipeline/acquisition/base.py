@@ -13,6 +13,7 @@ from typing import Callable, Protocol
 import torch
 from torch import Tensor
 
+from pipeline.acquisition.doors import ModelDoors
 from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec, SparseFisher, view_fisher, view_fisher_sparse
 from pipeline.memory import peak_rss_mb
@@ -36,6 +37,10 @@ class SelectionContext:
     # are): a probe that is a candidate or a taken view reuses that view's Fisher (same model)
     taken_ids: list[int] | None = None
     probe_ids: list[int] | None = None
+    # the target manifold the probes come from, as the protocol declares it (e.g. {"kind":
+    # "sector", "start_deg": 0, "width_deg": 120, "clockwise": True, "up": [x, y, z]}); None
+    # when the whole scene is the goal (the global and sparse protocols)
+    goal_manifold: dict | None = None
     fisher_seconds: float = field(default=0.0, init=False)  # time spent in Fisher passes
     fisher_views: int = field(default=0, init=False)
 
@@ -50,6 +55,12 @@ class SelectionContext:
             if ids is not None and (cams is None or len(ids) != len(cams)):
                 raise ValueError(f"{name} has {len(ids)} entries for "
                                  f"{0 if cams is None else len(cams)} cameras")
+
+    @property
+    def backend(self) -> ModelDoors:
+        """The current model's doors (render, per-view Fisher, training Hessian), the backend
+        resolved once for the model's device: what a strategy from outside should call."""
+        return ModelDoors.of(self.gaussians, self.background, self.settings)
 
 
 @dataclass

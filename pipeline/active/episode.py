@@ -87,6 +87,13 @@ def episode_extent(scene: Scene, views: ProtocolViews) -> float:
                         f"scene {scene.root} ({len(ids)} initial and pool cameras)")
 
 
+def probes_of_round(seed: int, round_index: int, views: ProtocolViews) -> list[int]:
+    """K probe ids for a round, redrawn every round independently of the selection history
+    (paper Sec. 5: a generator of its own, seeded by (seed, round)); benchmark definitions list them."""
+    gen = torch.Generator().manual_seed(seed * 100_003 + round_index)
+    return sample_probes(views.probe_ids, views.probes, gen)
+
+
 def episode_plan(scene: Scene, cfg: EpisodeConfig) -> Schedule:
     """The schedule an episode of ``cfg`` on ``scene`` follows, known before it runs."""
     return views_schedule(build_protocol(scene, cfg.protocol), cfg)
@@ -191,10 +198,13 @@ class Episode:
                            test_ssim_skimage=m["ssim_skimage"])
 
     def draw_probes(self, round_index: int) -> list[int]:
-        """K probe ids for this round, redrawn every round independently of the selection history
-        (paper Sec. 5: a generator of its own, seeded by (seed, round))."""
-        gen = torch.Generator().manual_seed(self.cfg.seed * 100_003 + round_index)
-        return sample_probes(self.views.probe_ids, self.views.probes, gen)
+        return probes_of_round(self.cfg.seed, round_index, self.views)
+
+    def goal_manifold(self) -> dict | None:
+        """The protocol's target manifold (its up axis filled in), None when the goal is the scene."""
+        p = self.cfg.protocol
+        data = p.manifold if p.kind == "goal" else p.probe_manifold
+        return None if data is None else {"up": list(self.views.up), **data}
 
     def select(self, rec: RoundRecord) -> None:
         rec.probes = self.draw_probes(rec.round)
@@ -206,7 +216,8 @@ class Episode:
         ctx = SelectionContext(self.trainer.rendered_gaussians, self.pool.cameras[remaining], remaining,
                                self.taken_cameras(), self.background, self.generator,
                                self.pool.cameras[rec.probes], self.taken_images(),
-                               self.trainer.settings, taken_ids=list(self.taken), probe_ids=list(rec.probes))
+                               self.trainer.settings, taken_ids=list(self.taken), probe_ids=list(rec.probes),
+                               goal_manifold=self.goal_manifold())
         cpu = time.process_time()
         sel = self.strategy.select(ctx, count)
         rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.acquisition import POSE_SCORING, make_strategy
+from pipeline.acquisition import POSE_SCORING, make_strategy, scores_any_pose
+from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve_strategy
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
@@ -151,6 +152,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
         splat = job_form(splat)
     except ValueError as err:
         raise ConfigError(f"splat.{err}") from None
+    plugins = strategy_plugins(methods)
     jobs = []
     output_dir = Path(str(cfg.output_dir))
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
@@ -181,6 +183,8 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                          else world)
             if job_world is not None:  # part of what the job computes (absent for the pool)
                 job["world"] = copy.deepcopy(job_world)
+            if plugins[mname] is not None:  # the plugin's code is part of what the job computes
+                job["plugin"] = plugins[mname]
             job["config_hash"] = config_hash(job)
             job["execution"] = {"threads": int(job_cfg["threads"]), "device": str(job_cfg["device"]),
                                 "retries": int(job_cfg["retries"]),
@@ -194,6 +198,27 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
             validate_job(typed)
             jobs.append(typed)
     return jobs
+
+
+def strategy_plugins(methods: dict) -> dict[str, dict | None]:
+    """Each method's plugin identity (None for a built-in strategy), every strategy resolved once
+    before any job is built: an unknown name, a plugin that cannot load, lacks ``select`` or
+    reuses a built-in name is a config error naming the method and the entry point or path."""
+    try:
+        check_plugins()
+    except StrategyError as err:
+        raise ConfigError(str(err)) from None
+    out = {}
+    for mname, method in methods.items():
+        if not isinstance(method, dict) or "strategy" not in method:
+            raise ConfigError(f"method.{mname}: missing key 'strategy' (a built-in name, an installed "
+                              "plugin's name or package.module:Class)")
+        try:
+            source = resolve_strategy(method["strategy"])
+        except StrategyError as err:
+            raise ConfigError(f"method.{mname}: {err}") from None
+        out[mname] = source.plugin.to_dict() if source.plugin is not None else None
+    return out
 
 
 def episode_config(job: Job) -> EpisodeConfig:
@@ -282,7 +307,7 @@ def validate_job(job: Job) -> None:
         strategy = make_strategy(job.strategy, **job.options)
     except ValueError as err:
         raise ConfigError(f"method.{job.method}: {err}") from None
-    if job.world is not None and not hasattr(strategy, "pose_scorer"):
+    if job.world is not None and not scores_any_pose(strategy):
         raise ConfigError(f"method.{job.method}: world={job.world['kind']} searches poses off the pool, which "
                           f"needs a strategy that scores any camera ({', '.join(POSE_SCORING)}); {job.strategy!r} "
                           "picks from the pool only")

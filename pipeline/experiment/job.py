@@ -24,7 +24,8 @@ from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
 from pipeline.experiment.build import episode_config, uncertainty_config
-from pipeline.experiment.layout import MODEL, JobFolder
+from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
+from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage
 from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
@@ -116,11 +117,14 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
     shown = result.test_ids[:job.renders]
     with torch.no_grad():
         background = scene.background.to(result.gaussians.means)
-        preds = render(result.gaussians, views.cameras[shown], background).rgb
+        every = render(result.gaussians, views.cameras[result.test_ids], background).rgb  # [T, H, W, 3]
+    preds = every[:len(shown)]
     truth = views.images.stack(shown).to(preds)
     artifacts = {"selected_views.json": json.dumps({"initial": result.initial, "selected": result.selected,
                                                     "probes": result.probes}).encode(),
-                 MODEL: ply.export_bytes(result.gaussians)}  # the final model, INRIA 3DGS PLY
+                 MODEL: ply.export_bytes(result.gaussians),  # the final model, INRIA 3DGS PLY
+                 # the portable result (pipeline.interchange's schema): what gopre-report --results reads
+                 BENCHMARK_RESULT: json.dumps(result_document(job, scene, cfg, result, every), indent=1).encode()}
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts)

@@ -7,7 +7,9 @@ through these two records instead of spelling the paths).
         log.txt
         checkpoint/episode.pt           the episode after its last finished round
         rounds/round_NN.ply             each round's model (job.round_models=true)
-        artifacts/result.json  artifacts/model.ply  artifacts/renders/ ...
+        artifacts/result.json           the episode's internal record (EpisodeResult.to_dict)
+        artifacts/benchmark/result.json the portable result (pipeline.interchange's schema)
+        artifacts/model.ply  artifacts/renders/ ...
 """
 
 from __future__ import annotations
@@ -47,6 +49,11 @@ class JobFolder:
     @property
     def result_file(self) -> Path:
         return self.artifacts / "result.json"
+
+    @property
+    def benchmark_result(self) -> Path:
+        """The portable ``result.json`` (``pipeline.interchange``'s schema)."""
+        return self.artifacts / BENCHMARK_RESULT
 
     @property
     def model_file(self) -> Path:
@@ -92,4 +99,5 @@ class SweepFolder:
         return SweepFolder(Path(folder).parent.parent)
 
 
+BENCHMARK_RESULT = "benchmark/result.json"  # the portable result (an artifact, also in MLflow)
 MODEL = "model.ply"  # the final model, INRIA 3DGS PLY (an artifact, also in MLflow)

@@ -39,7 +39,18 @@ def identity(job: Job, outcome: JobOutcome, run_id: str | None) -> dict:
             "scene": job.scene, "method": job.method, "strategy": job.strategy,
             "protocol": job.protocol["kind"], "seed": job.seed, "setting": job.setting,
             "axes": json.dumps(job.axes, sort_keys=True), "code_version": job.code_version,
-            "world": job.world["kind"] if job.world else "dataset"}  # where a view off the pool comes from
+            "world": job.world["kind"] if job.world else "dataset",  # where a view off the pool comes from
+            **plugin_columns(job)}
+
+
+def plugin_columns(job: Job) -> dict:
+    """A plugin strategy's identity (plugin, plugin_distribution, plugin_version, plugin_sha256);
+    none for a built-in strategy, so the records of built-in jobs keep their columns."""
+    if job.plugin is None:
+        return {}
+    p = job.plugin
+    return {"plugin": p["reference"], "plugin_distribution": p["distribution"],
+            "plugin_version": p["version"], "plugin_sha256": p["source_sha256"]}
 
 
 def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dict]:

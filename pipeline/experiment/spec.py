@@ -49,14 +49,18 @@ class Job:
     index: int | None = None         # the config's order (tables keep it)
     code_version: str | None = None
     world: dict | None = None        # the capture simulator off the pool (None: the dataset's pool)
+    # a strategy from outside the package: its PluginIdentity as a dict (reference, distribution,
+    # version, source_sha256), part of the hash so a changed plugin is re-run; None for a built-in
+    plugin: dict | None = None
 
     def to_dict(self) -> dict:
         """The plain form, key for key as ``jobs.json`` has always held it (``world`` only when a
         job captures off the pool, so a pool job's hash is what it always was)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["execution"] = asdict(self.execution) if self.execution is not None else None
-        if out["world"] is None:
-            del out["world"]
+        for optional in ("world", "plugin"):  # absent when unused: a built-in job's hash is unchanged
+            if out[optional] is None:
+                del out[optional]
         return out
 
     @classmethod

@@ -38,6 +38,16 @@ def flatten(data: dict, prefix: str = "") -> dict[str, str]:
     return out
 
 
+def plugin_tags(job: Job) -> dict[str, str]:
+    """A plugin strategy's identity as tags (plugin, plugin_distribution, plugin_version,
+    plugin_sha256); none for a built-in strategy."""
+    if job.plugin is None:
+        return {}
+    p = job.plugin
+    return {"plugin": str(p["reference"]), "plugin_distribution": str(p["distribution"]),
+            "plugin_version": str(p["version"]), "plugin_sha256": str(p["source_sha256"])}
+
+
 def job_params(job: Job) -> dict[str, str]:
     return flatten({k: v for k, v in job.to_dict().items()
                     if k not in ("execution", "config_hash", "sweep", "code_version")})
@@ -182,6 +192,7 @@ class MlflowTracker:
         tags = {k: str(getattr(job, k)) for k in TAGS}
         tags.update({"protocol": job.protocol["kind"], "mlflow.parentRunId": self.parent or "",
                      "output_dir": self.output_dir})
+        tags.update(plugin_tags(job))
         run = self.client.create_run(self.experiment_id, run_name=f"{job.method} {job.scene} s{job.seed}",
                                      tags=tags)
         self._log_params(run.info.run_id, job_params(job))

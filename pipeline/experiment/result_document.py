@@ -1,0 +1,80 @@
+"""An episode as the portable ``result.json`` (``pipeline.interchange``'s schema), and a preset's
+benchmark definitions: the same ``views`` block in both, built here from the scene.
+
+Written by every finished episode job beside its internal record (``jobs/<hash>/result.json``,
+and the MLflow artifact ``benchmark/result.json``); ``gopre-data benchmark`` writes the definitions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.active.config import EpisodeConfig
+from pipeline.active.episode import probes_of_round, views_schedule
+from pipeline.active.results import EpisodeResult
+from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.scene import Scene
+from pipeline.experiment.spec import Job
+from pipeline.interchange.documents import BENCHMARK_SCHEMA, RESULT_SCHEMA, SCHEMA_VERSION
+from pipeline.interchange.hashes import file_sha256, pixels_sha256
+
+
+def benchmark_key(job: Job) -> dict:
+    return {"dataset": job.dataset, "scene": job.scene, "protocol": job.protocol["kind"], "seed": job.seed,
+            "setting": job.setting}
+
+
+def views_block(scene: Scene, views: ProtocolViews, width: int | None) -> dict:
+    """What a method must use: splits, initial views, pool, test views with the sha256 of each
+    ground-truth image file, the budget and the working width."""
+    test_paths = scene.split(views.test_split).images.paths
+    return {"pool_split": views.pool_split, "test_split": views.test_split,
+            "initial_ids": list(views.initial_ids), "pool_ids": list(views.pool_ids),
+            "probe_ids": list(views.probe_ids), "test_ids": list(views.test_ids), "budget": int(views.budget),
+            "image_width": width,
+            "test_image_sha256": {str(i): file_sha256(test_paths[i]) for i in views.test_ids}}
+
+
+def benchmark_entry(job: Job, scene: Scene, cfg: EpisodeConfig) -> dict:
+    """One (scene, seed) of a preset: the views, and per round the views trained on, the picks it
+    asks for and the probe ids drawn for it (seeded by (seed, round), as every episode draws them)."""
+    views = build_protocol(scene, cfg.protocol)
+    schedule = views_schedule(views, cfg)
+    rounds = [{"round": k, "num_views": int(n), "picks": int(min(cfg.views_per_round, views.budget - n)),
+               "probes": probes_of_round(cfg.seed, k, views)} for k, n in enumerate(schedule.round_views)]
+    manifold = cfg.protocol.manifold if cfg.protocol.kind == "goal" else cfg.protocol.probe_manifold
+    return {"benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width),
+            "goal_manifold": None if manifold is None else {"up": list(views.up), **manifold},
+            "views_per_round": int(cfg.views_per_round), "pool_keep_fraction": float(cfg.pool_keep_fraction),
+            "rounds": rounds}
+
+
+def benchmark_document(preset: str, entries: list[dict], code_version: str, command: str) -> dict:
+    return {"schema": BENCHMARK_SCHEMA, "schema_version": SCHEMA_VERSION, "preset": preset, "command": command,
+            "code_version": code_version, "entries": entries}
+
+
+def result_document(job: Job, scene: Scene, cfg: EpisodeConfig, result: EpisodeResult,
+                    renders: torch.Tensor) -> dict:
+    """The episode as ``result.json``; ``renders`` [T, H, W, 3] are the final model's renders of
+    every test view, in ``result.test_ids`` order."""
+    views = build_protocol(scene, cfg.protocol)
+    final = result.final
+    pixels = renders.detach().cpu().numpy().astype(np.float64)
+    per_image = [{"test_id": int(view), "psnr": float(final.per_view_psnr[k]),
+                  "ssim": None if final.per_view_ssim is None else float(final.per_view_ssim[k]),
+                  "render_sha256": pixels_sha256(pixels[k])} for k, view in enumerate(result.test_ids)]
+    rounds = [{"num_views": r.num_views, "selected": list(r.selected), "psnr": r.test_psnr, "ssim": r.test_ssim,
+               "selection_seconds": r.selection_seconds if r.selected else None,
+               "selection_cpu_seconds": r.selection_cpu_seconds if r.selected else None,
+               "probes": list(r.probes)} for r in result.rounds]
+    return {"schema": RESULT_SCHEMA, "schema_version": SCHEMA_VERSION,
+            "method": {"name": job.method, "strategy": job.strategy, "options": dict(job.options),
+                       "plugin": job.plugin},
+            "benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width),
+            "rounds": rounds,
+            "final": {"num_views": result.rounds[-1].num_views, "psnr": final.psnr, "ssim": final.ssim,
+                      "lpips": final.lpips, "per_image": per_image},
+            "code_version": job.code_version or "unknown", "config_hash": job.config_hash,
+            "config": {k: v for k, v in job.to_dict().items() if k not in ("execution",)}}
