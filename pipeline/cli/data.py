@@ -6,6 +6,10 @@
     gopre-data twin SCENE OUT.ply [--width W] [--iterations N] [--seed S]
                                        the digital twin for world=twin: a splat trained on every
                                        training view (test views held out), its PSNR on both
+    gopre-data benchmark PRESET [KEY=VALUE ...] --out FILE
+                                       the preset's benchmark definitions: per (scene, seed) the initial
+                                       views, pool, goal probes per round, test views with image hashes
+                                       and the budget, as JSON (pipeline/interchange/benchmark.schema.json)
 """
 
 from __future__ import annotations
@@ -60,6 +64,45 @@ def make_twin(scene_path: Path, out: Path, width: int, iterations: int, seed: in
             "note": "views captured off the dataset's poses are this twin's renders, not photographs"}
 
 
+def write_benchmark(preset: str, overrides: list[str], out: Path) -> dict:
+    """Compose ``experiment=preset`` with ``overrides`` as gopre-run would, and write the
+    benchmark definitions of its episodes (validated against the schema) to ``out``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from pipeline.cli.run import CONF_DIR, register_resolvers
+    from pipeline.experiment.build import ConfigError, expand_jobs
+    from pipeline.experiment.provenance import code_version
+    from pipeline.experiment.result_document import benchmark_document, benchmark_entries
+    from pipeline.experiment.executor import scene_key
+    from pipeline.experiment.sweep import prepare_scenes
+    from pipeline.interchange.documents import validate
+    register_resolvers()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=[f"experiment={preset}", *overrides])
+    except HydraException as err:
+        raise ValueError(f"experiment={preset} {' '.join(overrides)}: {err}") from None
+    OmegaConf.resolve(cfg)
+    try:
+        jobs = expand_jobs(cfg)
+        scenes, errors = prepare_scenes(jobs)
+    except ConfigError as err:
+        raise ValueError(str(err)) from None
+    if errors:
+        raise ValueError("; ".join(errors))
+    command = " ".join(["gopre-data benchmark", preset, *overrides, "--out", str(out)])
+    doc = validate(benchmark_document(preset, benchmark_entries(jobs, scenes, scene_key), code_version(), command),
+                   "benchmark", str(out))
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(doc, indent=1) + "\n")
+    except OSError as err:
+        raise ValueError(f"--out {out}: cannot write it ({err.strerror or err})") from None
+    return {"written": str(out), "preset": preset, "entries": len(doc["entries"])}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=command_name("data"), description=__doc__,
                                      epilog=alias_note("data"),
@@ -78,8 +121,15 @@ def main(argv=None) -> int:
     twin.add_argument("--width", type=int, default=64, help="training width in pixels (default 64)")
     twin.add_argument("--iterations", type=int, default=5000)
     twin.add_argument("--seed", type=int, default=0)
+    bench = sub.add_parser("benchmark", help="write a preset's benchmark definitions (views a method must use)")
+    bench.add_argument("preset", help="an experiment preset, e.g. table2_goal")
+    bench.add_argument("overrides", nargs="*", help="gopre-run overrides, e.g. 'dataset=[generated]' splat=cpu")
+    bench.add_argument("--out", type=Path, required=True, help="the JSON file to write")
     args = parser.parse_args(argv)
     try:
+        if args.command == "benchmark":
+            print(json.dumps(write_benchmark(args.preset, args.overrides, args.out)))
+            return 0
         if args.command == "inspect":
             print(json.dumps(summary(args.path, args.deep)))
         elif args.command == "twin":

@@ -9,6 +9,8 @@
     gopre-report outputs/science outputs/table1_global --paper table1_global --out reports/t1
                                                          # several sweeps as one table
     gopre-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
+    gopre-report outputs/table2_goal --results elsewhere/                # result.json files from anywhere
+    gopre-report --results 'runs/**/result.json' --benchmark reports/benchmarks/table2_goal.json
 
 Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
 """
@@ -21,6 +23,24 @@ from pathlib import Path
 
 from pipeline.cli import alias_note, command_name
 from pipeline.report.report import combine_records, make_report
+
+
+def with_results(frame, patterns: list[str], benchmarks: list[str], sweeps: list[Path]):
+    """``frame`` (or nothing) with the accepted ``--results`` appended as records rows."""
+    import pandas as pd
+
+    from pipeline.report.external import external_rows
+    from pipeline.report.report import in_config_order, with_metrics_version
+    known = set() if frame is None else set(frame["config_hash"].dropna())
+    first = 0 if frame is None or "job_index" not in frame else int(frame["job_index"].max()) + 1
+    extra = external_rows(patterns, benchmarks, sweeps, known, first)
+    if extra.empty:
+        if frame is None:
+            raise ValueError("--results: every result given is already in the reported sweep")
+        return frame
+    if frame is None:
+        return in_config_order(with_metrics_version(extra))
+    return in_config_order(pd.concat([frame, with_metrics_version(extra)], ignore_index=True))
 
 
 def main(argv=None) -> int:
@@ -40,6 +60,13 @@ def main(argv=None) -> int:
     parser.add_argument("--paper", nargs="?", const="auto", default=None, metavar="TABLE",
                         help="also print the sweep beside the paper's table (paper.md): the table the "
                              "sweep's name maps to, or TABLE (table1_global ... table6_pool)")
+    parser.add_argument("--results", action="append", default=[], metavar="DIR_OR_GLOB",
+                        help="also report these result.json files (a file, a folder searched for them, or a "
+                             "glob; repeatable): each must match the benchmark it names, checked against "
+                             "--benchmark or the reported sweep's own views, else it is refused naming the field")
+    parser.add_argument("--benchmark", action="append", default=[], metavar="FILE",
+                        help="benchmark definitions (gopre-data benchmark PRESET --out FILE) the --results "
+                             "are checked against; repeatable")
     parser.add_argument("--paper-only", action="store_true",
                         help="with --paper: write only paper.md into --out (no tables, figures, run list)")
     args = parser.parse_args(argv)
@@ -51,10 +78,16 @@ def main(argv=None) -> int:
                 parser.error("--mlflow-uri and --experiment go together")
             from pipeline.experiment.records import records_from_mlflow  # the tracking edge
             frame, source = records_from_mlflow(args.mlflow_uri, args.experiment), Path(".")
-        elif not args.source:
-            parser.error("give a sweep folder, or --mlflow-uri and --experiment")
-        else:
+        elif not args.source and not args.results:
+            parser.error("give a sweep folder, --results, or --mlflow-uri and --experiment")
+        elif args.source:
             frame, source = combine_records(args.source), args.source[0]
+        else:
+            frame, source = None, Path(".")
+        if args.benchmark and not args.results:
+            parser.error("--benchmark goes with --results")
+        if args.results:
+            frame = with_results(frame, args.results, args.benchmark, list(args.source))
         if args.seeds:
             try:
                 seeds = {int(x) for x in args.seeds.split(",")}

@@ -78,3 +78,21 @@ def result_document(job: Job, scene: Scene, cfg: EpisodeConfig, result: EpisodeR
                       "lpips": final.lpips, "per_image": per_image},
             "code_version": job.code_version or "unknown", "config_hash": job.config_hash,
             "config": {k: v for k, v in job.to_dict().items() if k not in ("execution",)}}
+
+
+def benchmark_entries(jobs: list[Job], scenes: dict, scene_key) -> list[dict]:
+    """One entry per (dataset, scene, protocol, seed, setting) of ``jobs`` (methods share it);
+    ``scenes[scene_key(job)]`` is the job's scene. Two methods that would see different views
+    under one key (a method overriding the protocol) are an error naming both."""
+    from pipeline.experiment.build import ConfigError, episode_config
+    entries: dict[tuple, tuple[dict, str]] = {}
+    for job in jobs:
+        if job.kind != "episode":
+            continue
+        entry = benchmark_entry(job, scenes[scene_key(job)], episode_config(job))
+        key = tuple(entry["benchmark"].values())
+        if key in entries and entries[key][0]["views"] != entry["views"]:
+            raise ConfigError(f"methods {entries[key][1]} and {job.method} see different views on {key}: "
+                              "a method overrides the protocol; give them separate benchmark files")
+        entries.setdefault(key, (entry, job.method))
+    return [entry for entry, _ in entries.values()]

@@ -1,0 +1,83 @@
+"""Results from anywhere in a sweep's tables: ``gopre-report SWEEP --results DIR_OR_GLOB``.
+
+Each ``result.json`` (``pipeline.interchange``'s schema; a directory is searched for them) is
+validated, matched with the benchmark it claims, (dataset, scene, protocol, seed, setting), and
+refused naming the file and the first differing field unless its views equal the reference's:
+a definition from ``--benchmark FILE`` (``gopre-data benchmark``), else the same benchmark's
+``result.json`` written by a job of the reported sweeps. Accepted results become records rows
+beside the sweep's (same tables, same paired comparisons).
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline.interchange.documents import (RESULT_SCHEMA, DocumentError, check_views, describe, key_of,
+                                            read, result_rows)
+
+SWEEP_RESULTS = "jobs/*/artifacts/benchmark/result.json"
+
+
+def result_files(patterns: list[str]) -> list[Path]:
+    """Every result.json a pattern names: a file, a directory (searched recursively for files of
+    the result schema) or a glob; a pattern that names nothing is an error."""
+    found: list[Path] = []
+    for pattern in patterns:
+        path = Path(pattern)
+        if path.is_dir():
+            hits = [p for p in sorted(path.rglob("*.json")) if _is_result(p)]
+        elif path.is_file():
+            hits = [path]
+        else:
+            hits = [Path(p) for p in sorted(glob.glob(pattern, recursive=True)) if Path(p).is_file()]
+        if not hits:
+            raise DocumentError(f"--results {pattern}: no result.json there")
+        found += [p for p in hits if p not in found]
+    return found
+
+
+def _is_result(path: Path) -> bool:
+    try:
+        return json.loads(path.read_text()).get("schema") == RESULT_SCHEMA
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        return False
+
+
+def references(benchmarks: list[str], sweeps: list[Path]) -> dict[tuple, tuple[dict, str]]:
+    """Benchmark key -> (views, where it came from): the --benchmark files' entries first, then
+    the reported sweeps' own result.json files."""
+    out: dict[tuple, tuple[dict, str]] = {}
+    for file in benchmarks:
+        doc = read(file, "benchmark")
+        for entry in doc["entries"]:
+            out.setdefault(key_of(entry["benchmark"]), (entry["views"], f"the benchmark definition {file}"))
+    for sweep in sweeps:
+        folder = sweep if sweep.is_dir() else sweep.parent
+        for path in sorted(folder.glob(SWEEP_RESULTS)):
+            doc = read(path, "result")
+            out.setdefault(key_of(doc["benchmark"]), (doc["views"], f"sweep {folder} ({path.parent.parent.parent.name})"))
+    return out
+
+
+def external_rows(patterns: list[str], benchmarks: list[str], sweeps: list[Path],
+                  known_hashes: set[str], first_index: int = 0) -> pd.DataFrame:
+    """The accepted results as records rows; results already in the sweep (same config hash)
+    are left out. DocumentError names the file and field of the first refused result."""
+    refs = references(benchmarks, sweeps)
+    rows = []
+    for k, path in enumerate(result_files(patterns)):
+        doc = read(path, "result")
+        if doc.get("config_hash") in known_hashes:
+            continue
+        key = key_of(doc["benchmark"])
+        if key not in refs:
+            raise DocumentError(f"{path}: no benchmark definition for {describe(key)}: pass --benchmark FILE "
+                                "(gopre-data benchmark PRESET --out FILE) or the sweep that ran it")
+        views, where = refs[key]
+        check_views(doc, views, str(path), where)
+        rows += result_rows(doc, str(path), first_index + k)
+    return pd.DataFrame(rows)
