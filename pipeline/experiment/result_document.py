@@ -33,7 +33,17 @@ def views_block(scene: Scene, views: ProtocolViews, width: int | None) -> dict:
             "initial_ids": list(views.initial_ids), "pool_ids": list(views.pool_ids),
             "probe_ids": list(views.probe_ids), "test_ids": list(views.test_ids), "budget": int(views.budget),
             "image_width": width,
-            "test_image_sha256": {str(i): file_sha256(test_paths[i]) for i in views.test_ids}}
+            "test_image_sha256": {str(i): file_sha256(test_paths[i]) for i in views.test_ids},
+            "test_image_files": {str(i): _relative(test_paths[i], scene.root) for i in views.test_ids}}
+
+
+def _relative(path, root) -> str:
+    """An image's path relative to the scene folder (absolute when it lies elsewhere)."""
+    from pathlib import Path
+    try:
+        return Path(path).resolve().relative_to(Path(root).resolve()).as_posix()
+    except ValueError:
+        return str(path)
 
 
 def benchmark_entry(job: Job, scene: Scene, cfg: EpisodeConfig) -> dict:

@@ -1,0 +1,143 @@
+"""result.json and benchmark definitions: every finished episode writes a result that validates
+against the package's JSON Schema (checked with jsonschema), whose views equal the preset's
+benchmark definition; a result written without the pipeline's selection code is accepted in the
+report beside the sweep's rows; a changed split or ground-truth hash is refused naming the field."""
+
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import jsonschema
+import pytest
+from hydra import compose, initialize_config_dir
+
+from pipeline.cli.data import write_benchmark
+from pipeline.cli.report import main as report_main
+from pipeline.cli.run import CONF_DIR
+from pipeline.experiment.sweep import run_sweep
+from pipeline.interchange.documents import DocumentError, _validator, schema
+from pipeline.interchange.hashes import file_sha256, pixels_sha256
+from pipeline.report.external import external_rows
+
+ROOT = Path(__file__).resolve().parents[1]
+GOAL = ["splat=tiny", "splat.iterations=60", "dataset=[generated]", "dataset.generated.generate.size=32",
+        "dataset.generated.generate.n_train=12", "dataset.generated.generate.n_test=12",
+        "protocol.initial_views=2", "protocol.budget=4", "protocol.probes=3"]
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    out = tmp_path_factory.mktemp("interchange") / "sweep"
+    overrides = ["experiment=table2_goal", "method=[gopre,random]", *GOAL, "executor=local", "tracking=none",
+                 f"output_dir={out}", "seeds=[0,1]"]
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides)
+    assert run_sweep(cfg).finished == 4
+    bench = out.parent / "bench.json"
+    write_benchmark("table2_goal", overrides[1:], bench)
+    return out, bench
+
+
+def results(out: Path) -> list[Path]:
+    return sorted(out.glob("jobs/*/artifacts/benchmark/result.json"))
+
+
+def test_every_episode_writes_a_result_valid_under_the_schema(sweep):
+    out, bench = sweep
+    files = results(out)
+    assert len(files) == 4
+    for path in files:
+        doc = json.loads(path.read_text())
+        jsonschema.validate(doc, schema("result"))  # the package's schema, by jsonschema itself
+        assert doc["benchmark"]["protocol"] == "goal" and doc["method"]["name"] in ("gopre", "random")
+        scene = Path(doc["config"]["scene_path"])
+        for view, name in doc["views"]["test_image_files"].items():  # hashes of the files themselves
+            assert doc["views"]["test_image_sha256"][view] == file_sha256(scene / name)
+        taken = doc["views"]["initial_ids"] + [i for r in doc["rounds"] for i in r["selected"]]
+        assert len(taken) == doc["views"]["budget"] == doc["final"]["num_views"]
+        assert sorted(p["test_id"] for p in doc["final"]["per_image"]) == sorted(doc["views"]["test_ids"])
+
+
+def test_the_sweep_uses_exactly_the_benchmark_definition(sweep):
+    out, bench = sweep
+    definition = json.loads(bench.read_text())
+    assert not list(_validator("benchmark").iter_errors(definition))
+    entries = {(e["benchmark"]["scene"], e["benchmark"]["seed"]): e for e in definition["entries"]}
+    assert len(entries) == 2  # one per (scene, seed): the methods share it
+    for path in results(out):
+        doc = json.loads(path.read_text())
+        entry = entries[(doc["benchmark"]["scene"], doc["benchmark"]["seed"])]
+        assert doc["views"] == entry["views"]
+        picked = [r for r in doc["rounds"] if r["selected"]]
+        assert [r["probes"] for r in picked] == [r["probes"] for r in entry["rounds"]]
+        assert [r["num_views"] for r in picked] == [r["num_views"] for r in entry["rounds"]]
+
+
+def test_render_hash_convention():
+    import numpy as np
+    pixels = np.zeros((2, 3, 3))
+    pixels[0, 0] = [1.0, 0.5, 2.0]  # clipped and rounded: 255, 128, 255
+    expected = np.zeros((2, 3, 3), dtype=np.uint8)
+    expected[0, 0] = [255, 128, 255]
+    import hashlib
+    assert pixels_sha256(pixels) == hashlib.sha256(expected.tobytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def external(sweep, tmp_path_factory):
+    """A result.json from examples/external_result.py, which imports nothing of the pipeline."""
+    out, bench = sweep
+    script = ROOT / "examples" / "external_result.py"
+    assert "pipeline" not in "".join(line for line in script.read_text().splitlines()
+                                     if line.startswith(("import", "from")))
+    scene = Path(json.loads(results(out)[0].read_text())["config"]["scene_path"])
+    target = tmp_path_factory.mktemp("external") / "result.json"
+    subprocess.run([sys.executable, str(script), str(bench), str(scene), "--scene", "generated", "--seed", "0",
+                    "--out", str(target)], check=True, capture_output=True)
+    return target
+
+
+def test_an_outside_result_is_accepted_beside_the_sweep(sweep, external, tmp_path, capsys):
+    out, bench = sweep
+    assert report_main([str(out), "--results", str(external), "--out", str(tmp_path / "r")]) == 0
+    table = (tmp_path / "r" / "table.md").read_text()
+    assert "| mean_colour |" in table and "| gopre |" in table
+    paired = [line for line in table.splitlines() if line.startswith("| mean_colour | 1 |")]
+    assert paired, "the outside method's paired comparison against gopre"
+    # against the published definition alone, without the sweep
+    assert report_main(["--results", str(external), "--benchmark", str(bench), "--out", str(tmp_path / "b")]) == 0
+
+
+def changed(external: Path, tmp_path: Path, edit) -> Path:
+    doc = json.loads(external.read_text())
+    edit(doc)
+    path = tmp_path / "changed.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["views"].update(test_ids=d["views"]["test_ids"][1:]), r"views.test_ids is \["),
+    (lambda d: d["views"]["test_image_sha256"].update({next(iter(d["views"]["test_image_sha256"])): "0" * 64}),
+     r"views.test_image_sha256 differs from .* for test view\(s\) \[.*\]: not the same ground-truth images"),
+    (lambda d: d["views"].update(initial_ids=[1, 2]), r"views.initial_ids is \[1, 2\]"),
+    (lambda d: d["benchmark"].update(seed=7), r"no benchmark definition for generated/generated goal seed 7"),
+    (lambda d: d["rounds"][0]["selected"].append(10_000), r"rounds select view\(s\) \[10000\] outside"),
+    (lambda d: d["final"].pop("per_image"), r"not a valid result file .*final: 'per_image' is a required property"),
+])
+def test_a_result_that_does_not_match_is_refused_naming_the_field(sweep, external, tmp_path, edit, message):
+    out, bench = sweep
+    path = changed(external, tmp_path, edit)
+    with pytest.raises(DocumentError, match=message) as err:
+        external_rows([str(path)], [str(bench)], [], set())
+    assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
+
+
+def test_the_report_command_refuses_with_one_line(sweep, external, tmp_path, capsys):
+    out, _ = sweep
+    path = changed(external, tmp_path, lambda d: d["views"].update(budget=9))
+    assert report_main([str(out), "--results", str(path), "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gopre-report: error: ") and "views.budget is 9" in err and "\n" not in err
