@@ -242,3 +242,23 @@ def test_model_doors_equal_the_functions_they_open():
     assert torch.equal(doors.view_fisher(cams), fisher) and fisher.abs().sum() > 0
     assert torch.allclose(doors.training_hessian(cams), fisher[0] + fisher[1], rtol=1e-12, atol=0)
     assert torch.equal(doors.training_hessian(cams[[0]][[]]), torch.zeros_like(fisher[0]))
+
+
+def gopre_run(args, pythonpath, cwd):
+    env = {"PYTHONPATH": pythonpath, "PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "HOME": str(cwd)}
+    return subprocess.run([str(Path(sys.executable).parent / "gopre-run"), *args], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=300)
+
+
+def test_config_dir_brings_a_method_yaml_from_outside(installed, tmp_path):
+    """`gopre-run --config-dir DIR ... +method=NAME`, as the README says, before any job starts."""
+    args = ["--config-dir", str(EXAMPLE / "conf"), "experiment=table2_goal", "+method=farthest_view",
+            "dataset=[generated]", "splat=tiny", "plan=true", f"output_dir={tmp_path}/out"]
+    done = gopre_run(args, str(installed), tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("farthest_view") >= 1 and "gopre" in done.stdout
+    missing = gopre_run(args, "", tmp_path)  # the plugin not installed: one line, exit 2, nothing started
+    assert missing.returncode == 2
+    last = missing.stderr.strip().splitlines()[-1]
+    assert last.startswith("gopre-run: config error: method.farthest_view: unknown strategy 'farthest_view'")
+    assert not (tmp_path / "out" / "jobs").exists()

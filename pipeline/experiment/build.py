@@ -302,7 +302,7 @@ def uncertainty_config(job: Job) -> UncertaintyConfig:
 
 
 def validate_job(job: Job) -> None:
-    episode_config(job)
+    job.episode  # resolved once here, at start-up; a bad value is a config error naming the key
     try:
         strategy = make_strategy(job.strategy, **job.options)
     except ValueError as err:

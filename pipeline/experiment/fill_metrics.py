@@ -27,7 +27,6 @@ import pandas as pd
 
 from pipeline.active.results import METRICS_VERSION, EpisodeResult
 from pipeline.eval.metrics import evaluate_views
-from pipeline.experiment.build import episode_config
 from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.scene_lookup import scene_of
@@ -93,7 +92,7 @@ def filled_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_roo
     if not layout.model_file.exists():
         raise ValueError(f"no {layout.model_file}")
     scenes = {} if scenes is None else scenes
-    key = (job.scene_path, episode.scene, episode_config(job).fit.image_width)
+    key = (job.scene_path, episode.scene, job.episode.fit.image_width)
     if key not in scenes:
         scenes[key] = scene_of(job, {"scene": episode.scene}, None, data_root)
     scene = scenes[key]

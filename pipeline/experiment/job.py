@@ -23,7 +23,7 @@ from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
-from pipeline.experiment.build import episode_config, uncertainty_config
+from pipeline.experiment.build import uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage
@@ -87,7 +87,7 @@ def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.T
 
 
 def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
-    cfg = episode_config(job)
+    cfg = job.episode
     rounds = len(episode_plan(scene, cfg).round_views) + 1
     pending_images: dict[int, dict[str, bytes]] = {}
 
@@ -136,7 +136,7 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
 
 
 def run_uncertainty_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
-    out = run_uncertainty_experiment(scene, episode_config(job), uncertainty_config(job))
+    out = run_uncertainty_experiment(scene, job.episode, uncertainty_config(job))
     artifacts = {}
     for i, view in enumerate(out.map_ids):
         row = uncertainty_row(out.ground_truth[i], out.renders[i], out.variance_maps[i].sum(-1))
@@ -155,7 +155,7 @@ def run_job(job: Job, scene: Scene | None = None, report: Report | None = None) 
     folder = Path(ex.job_dir)
     folder.mkdir(parents=True, exist_ok=True)
     if scene is None:
-        scene = load_scene(job.scene_path, width=episode_config(job).fit.image_width)
+        scene = load_scene(job.scene_path, width=job.episode.fit.image_width)
     start = time.perf_counter()
     runner = run_uncertainty_job if job.kind == "uncertainty" else run_episode_job
     outcome = runner(job, scene, folder, report)

@@ -45,11 +45,10 @@ def hyperparameter_text(jobs: list[Job]) -> str:
     """Every hyperparameter the jobs' episodes run with, once per distinct set (the fit recipe
     after the preset, splat.iterations / image_width / max_gaussians and any splat.fit.* overrides,
     then the episode's own settings), with the jobs (methods) that use it."""
-    from pipeline.experiment.build import episode_config  # the jobs' own resolution
 
     groups: dict[str, list[str]] = {}
     for job in jobs:
-        cfg = episode_config(job)
+        cfg = job.episode
         values = {**{f"fit.{k}": v for k, v in cfg.fit.flat().items() if k != "seed"},
                   **{k: getattr(cfg, k) for k in ("epochs_per_view", "views_per_round", "pool_keep_fraction",
                                                   "post_selection", "curve_test_views", "lpips")}}

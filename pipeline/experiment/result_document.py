@@ -94,12 +94,12 @@ def benchmark_entries(jobs: list[Job], scenes: dict, scene_key) -> list[dict]:
     """One entry per (dataset, scene, protocol, seed, setting) of ``jobs`` (methods share it);
     ``scenes[scene_key(job)]`` is the job's scene. Two methods that would see different views
     under one key (a method overriding the protocol) are an error naming both."""
-    from pipeline.experiment.build import ConfigError, episode_config
+    from pipeline.experiment.build import ConfigError
     entries: dict[tuple, tuple[dict, str]] = {}
     for job in jobs:
         if job.kind != "episode":
             continue
-        entry = benchmark_entry(job, scenes[scene_key(job)], episode_config(job))
+        entry = benchmark_entry(job, scenes[scene_key(job)], job.episode)
         key = tuple(entry["benchmark"].values())
         if key in entries and entries[key][0]["views"] != entry["views"]:
             raise ConfigError(f"methods {entries[key][1]} and {job.method} see different views on {key}: "

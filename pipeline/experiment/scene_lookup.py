@@ -7,7 +7,6 @@ from pathlib import Path
 
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
-from pipeline.experiment.build import episode_config
 from pipeline.experiment.spec import Job
 
 
@@ -29,7 +28,7 @@ def scene_candidates(job: Job, result: dict | None, scene: str | None = None,
 def scene_of(job: Job, result: dict | None, scene: str | None = None,
              data_root: str | None = None) -> Scene:
     """The scene the job ran on, read at the episode's image width."""
-    width = episode_config(job).fit.image_width
+    width = job.episode.fit.image_width
     tried = scene_candidates(job, result, scene, data_root)
     for path in tried:
         if Path(path).exists():

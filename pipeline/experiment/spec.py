@@ -10,6 +10,10 @@ core's dataclasses by ``pipeline.experiment.build`` (``episode_config``, ``uncer
 from __future__ import annotations
 
 from dataclasses import MISSING, asdict, dataclass, field, fields
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pipeline.active.config import EpisodeConfig
 
 
 @dataclass(frozen=True)
@@ -75,6 +79,16 @@ class Job:
             raise ValueError(f"Job.from_dict: missing keys {missing}")
         execution = data.get("execution")
         return cls(**{**data, "execution": Execution(**execution) if execution else None})
+
+    @property
+    def episode(self) -> "EpisodeConfig":
+        """The core's episode config of this job (``build.episode_config``), resolved once and kept:
+        every reader (the worker, the plan, scene loading, the viewer, result files) shares it."""
+        cached = self.__dict__.get("_episode")
+        if cached is None:
+            from pipeline.experiment.build import episode_config  # build makes Jobs: import when used
+            cached = self.__dict__["_episode"] = episode_config(self)
+        return cached
 
     @property
     def label(self) -> str:

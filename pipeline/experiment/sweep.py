@@ -18,7 +18,7 @@ from pipeline.data.load import load_scene
 from pipeline.data.protocols import build_protocol
 from pipeline.data.scene import Scene
 from pipeline.data.synthetic import at_fraction, generate
-from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
+from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.console import console, sweep_log
 from pipeline.experiment.executor import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
@@ -129,7 +129,7 @@ def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200),
                      progress=every_quarter)
         try:
-            scene = load_scene(path, width=episode_config(job).fit.image_width)
+            scene = load_scene(path, width=job.episode.fit.image_width)
         except Exception as err:
             errors.append(f"dataset.{job.dataset} scene {job.scene!r}: {err}")
             continue
@@ -156,7 +156,7 @@ def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = Tr
             continue
         checked.add(key)
         try:
-            views = build_protocol(scenes[scene_key(job)], episode_config(job).protocol)
+            views = build_protocol(scenes[scene_key(job)], job.episode.protocol)
         except ValueError as err:
             where = f" ({job.setting})" if job.setting else ""
             errors.append(f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}")

@@ -21,7 +21,6 @@ from pipeline.active.config import EpisodeConfig
 from pipeline.cameras import Cameras
 from pipeline.data.protocols import ProtocolViews, build_protocol
 from pipeline.data.scene import Scene, Split
-from pipeline.experiment.build import episode_config
 from pipeline.experiment.export import from_checkpoint
 from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.experiment.scene_lookup import scene_of
@@ -209,7 +208,7 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
         if not checkpoint.exists():
             raise ValueError(f"{folder}: an episode off the pool needs its checkpoint (the captured views)")
         captured = captured_split(torch.load(checkpoint, weights_only=False, map_location="cpu"))
-    cfg = episode_config(job)
+    cfg = job.episode
     scene = scene_of(job, result, scene, data_root)
     views = build_protocol(scene, cfg.protocol)
     kept = {i: layout.round_model(i) for i in range(len(records))}
