@@ -28,8 +28,7 @@ import pandas as pd
 from pipeline.active.results import EpisodeResult, FinalMetrics, UncertaintyResult
 from pipeline.experiment.outcome import JobOutcome
 from pipeline.experiment.spec import Job
-
-RECORDS = "records.parquet"
+from pipeline.interchange.layout import RECORDS  # the one spelling of the records file
 
 
 def identity(job: Job, outcome: JobOutcome, run_id: str | None) -> dict:

@@ -18,8 +18,7 @@ import pandas as pd
 
 from pipeline.interchange.documents import (RESULT_SCHEMA, DocumentError, check_views, describe, key_of,
                                             read, result_rows)
-
-SWEEP_RESULTS = "jobs/*/artifacts/benchmark/result.json"
+from pipeline.interchange.layout import SweepFolder
 
 
 def result_files(patterns: list[str]) -> list[Path]:
@@ -56,10 +55,10 @@ def references(benchmarks: list[str], sweeps: list[Path]) -> dict[tuple, tuple[d
         for entry in doc["entries"]:
             out.setdefault(key_of(entry["benchmark"]), (entry["views"], f"the benchmark definition {file}"))
     for sweep in sweeps:
-        folder = sweep if sweep.is_dir() else sweep.parent
-        for path in sorted(folder.glob(SWEEP_RESULTS)):
+        folder = SweepFolder(sweep if sweep.is_dir() else sweep.parent)
+        for path in folder.benchmark_results():
             doc = read(path, "result")
-            out.setdefault(key_of(doc["benchmark"]), (doc["views"], f"sweep {folder} ({path.parent.parent.parent.name})"))
+            out.setdefault(key_of(doc["benchmark"]), (doc["views"], f"sweep {folder.path} (job {doc.get('config_hash')})"))
     return out
 
 

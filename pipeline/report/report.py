@@ -19,7 +19,7 @@ from pipeline.report.stats import default_reference, paired_comparisons, with_cu
 from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
                                     to_latex, to_markdown)
 
-RECORDS = "records.parquet"
+from pipeline.interchange.layout import RECORDS  # the one spelling of the records file
 
 
 def load_records(source: str | Path) -> pd.DataFrame:

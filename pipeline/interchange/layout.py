@@ -1,0 +1,101 @@
+"""The on-disk layout of a sweep and of its jobs, written once and torch-free, so the sweep's
+writers (``pipeline.experiment``), the reports, the viewer and readers of ``result.json`` spell
+no path themselves. ``pipeline.experiment.layout`` adds reading and writing the jobs list.
+
+    <output_dir>/                       SweepFolder
+      jobs.json  records.parquet  sweep_config.json  summary.json  sweep.log  mlflow.db
+      jobs/<config hash>/               JobFolder
+        log.txt
+        checkpoint/episode.pt           the episode after its last finished round
+        rounds/round_NN.ply             each round's model (job.round_models=true)
+        artifacts/result.json           the episode's internal record (EpisodeResult.to_dict)
+        artifacts/benchmark/result.json the portable result (this package's result schema)
+        artifacts/model.ply  artifacts/renders/ ...
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+RECORDS = "records.parquet"
+CHECKPOINT = "episode.pt"                      # the episode checkpoint's file name
+BENCHMARK_RESULT = "benchmark/result.json"     # the portable result (an artifact, also in MLflow)
+MODEL = "model.ply"                            # the final model, INRIA 3DGS PLY (an artifact, also in MLflow)
+
+
+@dataclass(frozen=True)
+class JobFolder:
+    path: Path
+
+    @property
+    def hash(self) -> str:
+        return self.path.name
+
+    @property
+    def log_file(self) -> Path:
+        return self.path / "log.txt"
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.path / "checkpoint"
+
+    @property
+    def checkpoint_file(self) -> Path:
+        return self.checkpoint_dir / CHECKPOINT
+
+    @property
+    def artifacts(self) -> Path:
+        return self.path / "artifacts"
+
+    @property
+    def result_file(self) -> Path:
+        return self.artifacts / "result.json"
+
+    @property
+    def benchmark_result(self) -> Path:
+        """The portable ``result.json`` (``pipeline.interchange``'s schema)."""
+        return self.artifacts / BENCHMARK_RESULT
+
+    @property
+    def model_file(self) -> Path:
+        return self.artifacts / MODEL
+
+    def round_model(self, index: int) -> Path:
+        return self.path / "rounds" / f"round_{index:02d}.ply"
+
+
+@dataclass(frozen=True)
+class SweepFolder:
+    path: Path
+
+    @property
+    def jobs_file(self) -> Path:
+        return self.path / "jobs.json"
+
+    @property
+    def records_file(self) -> Path:
+        return self.path / RECORDS
+
+    @property
+    def config_file(self) -> Path:
+        return self.path / "sweep_config.json"
+
+    @property
+    def summary_file(self) -> Path:
+        return self.path / "summary.json"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.path / "jobs"
+
+    def job(self, config_hash: str) -> JobFolder:
+        return JobFolder(self.jobs_dir / config_hash)
+
+    def job_folders(self) -> list[JobFolder]:
+        """Every job folder on disk, by hash."""
+        return [JobFolder(p) for p in sorted(self.jobs_dir.glob("*")) if p.is_dir()]
+
+    def benchmark_results(self) -> list[Path]:
+        """Every job's portable result.json on disk."""
+        return [f.benchmark_result for f in self.job_folders() if f.benchmark_result.is_file()]
