@@ -45,6 +45,7 @@ class EpisodeConfig:
     world: str = "dataset"              # dataset | generated | twin (see WORLDS)
     world_model: str | None = None      # twin: "ply:PATH" of the reference splat
     search: dict = field(default_factory=dict)  # pose search (world != dataset): SEARCH_KEYS
+    masks: bool = False                 # train and evaluate on the capture's masked-in pixels only
 
     def __post_init__(self) -> None:
         if self.post_selection not in POLICIES:
@@ -101,6 +102,8 @@ class EpisodeConfig:
         out = asdict(self)
         if out["init"] is None:
             del out["init"]
+        if not out["masks"]:  # a checkpoint of an unmasked episode matches as before
+            del out["masks"]
         if self.world == "dataset":  # so are the world's fields (issue 28)
             for key in ("world", "world_model", "search"):
                 del out[key]

@@ -29,6 +29,7 @@ from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
 from pipeline.cameras import Cameras
 from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.images import read_mask
 from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
 from pipeline.data.scene import Scene
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
@@ -110,6 +111,9 @@ class Episode:
         self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
         self.pool = scene.split(self.views.pool_split)
         self.test = scene.split(self.views.test_split)
+        if cfg.masks and scene.masks is None:
+            raise ValueError(f"masks=true but scene {scene.root} was read without masks "
+                             "(load_scene(..., masks=True) reads a capture's masks/)")
         if cfg.fit.image_width is not None and self.pool.cameras.width != cfg.fit.image_width:
             raise ValueError(f"scene {scene.root} was read at width {self.pool.cameras.width} but "
                              f"fit.image_width is {cfg.fit.image_width}")
@@ -144,6 +148,20 @@ class Episode:
         return Cameras.cat([self.acquired.camera(v) if self.acquired.is_acquired(v) else self.pool.cameras[[v]]
                             for v in self.taken])
 
+    def masks(self, split_name: str, ids: list[int]) -> torch.Tensor | None:
+        """[len(ids), H, W] masks of a split's views when the episode uses masks (else None); a
+        view captured off the pool has none (all ones)."""
+        if not self.cfg.masks:
+            return None
+        split = self.scene.split(split_name)
+        size = (split.cameras.width, split.cameras.height)
+        files = self.scene.masks[split_name]
+        return torch.stack([torch.ones(size[1], size[0]) if i >= len(files) else read_mask(files[i], size)
+                            for i in ids]).to(self.device)
+
+    def taken_masks(self) -> torch.Tensor | None:
+        return self.masks(self.views.pool_split, self.taken)
+
     def taken_images(self) -> torch.Tensor:
         """[len(taken), H, W, 3] in taken order."""
         if not any(self.acquired.is_acquired(v) for v in self.taken):
@@ -158,7 +176,8 @@ class Episode:
             # both would put resets right before an evaluation of the PSNR-vs-views curve
             fit = fit.with_changes(densify=replace(fit.densify, periodic_opacity_reset=False))
         return Trainer(self.init, self.taken_cameras(), self.taken_images(),
-                       fit, self.background, extent=self.extent, nonfinite_dir=self.folder)
+                       fit, self.background, extent=self.extent, nonfinite_dir=self.folder,
+                       masks=self.taken_masks())
 
     # -- checkpoint ---------------------------------------------------------------------------
     def state(self, key: str) -> dict:
@@ -172,7 +191,7 @@ class Episode:
         self.taken = list(state["taken"])
         self.records = [RoundRecord.from_dict(r) for r in state["records"]]
         self.acquired.restore(state.get("acquired", {"poses": []}))
-        self.trainer.set_views(self.taken_cameras(), self.taken_images())
+        self.trainer.set_views(self.taken_cameras(), self.taken_images(), self.taken_masks())
         self.trainer.load_state_dict(state["trainer"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
@@ -189,7 +208,8 @@ class Episode:
     def evaluate_curve(self) -> dict:
         """The mean psnr, ssim, ssim_skimage of the curve's test views."""
         return evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.curve_ids],
-                              self.images(self.test, self.curve_ids), self.background).mean()
+                              self.images(self.test, self.curve_ids), self.background,
+                              masks=self.masks(self.views.test_split, self.curve_ids)).mean()
 
     def record(self, train_seconds: float) -> RoundRecord:
         m = self.evaluate_curve()
@@ -281,7 +301,7 @@ class Episode:
             self.trainer = self._new_trainer()
             self.trainer.nonfinite_steps = skipped
             return
-        self.trainer.set_views(self.taken_cameras(), self.taken_images())
+        self.trainer.set_views(self.taken_cameras(), self.taken_images(), self.taken_masks())
         if policy == "reset_opacity":
             self.trainer.reset_opacity()
 
@@ -303,7 +323,8 @@ class Episode:
         drop = last_round.test_psnr - rec.test_psnr if last_round is not None else 0.0
         lpips = LpipsMetric() if self.cfg.lpips else None
         m = evaluate_views(self.trainer.rendered_gaussians, self.test.cameras[self.views.test_ids],
-                           self.images(self.test, self.views.test_ids), self.background, lpips)
+                           self.images(self.test, self.views.test_ids), self.background, lpips,
+                           masks=self.masks(self.views.test_split, self.views.test_ids))
         mean = m.mean()
         self.final = FinalMetrics(
             mean["psnr"], mean["ssim"], mean["ssim_skimage"], mean["lpips"],

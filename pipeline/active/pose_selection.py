@@ -100,7 +100,7 @@ def episode_pose_space(scene: Scene, views: ProtocolViews, protocol: ProtocolCon
         up = scene_up(scene, scene.all_cameras())
     # an object scene's bounding radius must stay outside every pose; a real capture's cameras
     # stand inside its point cloud's box, so there the bound does not apply
-    obj = scene.format == "blender"  # an object scene: the whole shell around it
+    obj = scene.traits.kind == "object"  # an object scene: the whole shell around it
     space = LookAtShell.spanning(cams, centre, up / up.norm(), scene_radius=radius if obj else 0.0,
                                  full_circle=True if obj else None)
     if isinstance(manifold, SectorManifold):

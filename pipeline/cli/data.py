@@ -6,6 +6,10 @@
     gopre-data twin SCENE OUT.ply [--width W] [--iterations N] [--seed S]
                                        the digital twin for world=twin: a splat trained on every
                                        training view (test views held out), its PSNR on both
+    gopre-data capture PHOTOS_DIR|VIDEO --out SCENE [--max-size PX] [--frames N]
+                                       structure-from-motion (pycolmap, CPU) of your own photos or
+                                       video into a COLMAP scene (undistorted, masks kept), with
+                                       SCENE/capture.json: registered images, points, reprojection error
     gopre-data benchmark PRESET [KEY=VALUE ...] --out FILE
                                        the preset's benchmark definitions: per (scene, seed) the initial
                                        views, pool, goal probes per round, test views with image hashes
@@ -31,7 +35,10 @@ def summary(path: Path, deep: bool = False) -> dict:
     out = {"path": str(path), "format": scene.format, "name": scene.name,
            "splits": {k: len(v) for k, v in scene.splits.items()},
            "image_size": [first.cameras.width, first.cameras.height],
-           "camera_model": "PINHOLE (from camera_angle_x)" if scene.format == "blender" else "from COLMAP",
+           "camera_model": {"blender": "PINHOLE (from camera_angle_x)", "colmap": "from COLMAP",
+                            "nerfstudio": "from transforms.json"}.get(scene.format, scene.format)
+                           + (" (undistorted, cached)" if scene.info.get("undistorted") else ""),
+           "traits": {"kind": scene.traits.kind, "up": scene.traits.up, "split": scene.traits.split},
            "points": 0 if scene.points is None else int(len(scene.points))}
     if scene.format == "colmap":
         out["model_image_size"] = scene.info.get("model_size")
@@ -121,12 +128,28 @@ def main(argv=None) -> int:
     twin.add_argument("--width", type=int, default=64, help="training width in pixels (default 64)")
     twin.add_argument("--iterations", type=int, default=5000)
     twin.add_argument("--seed", type=int, default=0)
+    cap = sub.add_parser("capture", help="photos or a video in, a COLMAP scene out (pycolmap SfM on the CPU)")
+    cap.add_argument("source", type=Path, help="a folder of photos (masks/ beside it is kept) or a video file")
+    cap.add_argument("--out", type=Path, required=True, help="the scene folder to create (must be new or empty)")
+    cap.add_argument("--max-size", type=int, default=800, help="longest side of the images SfM sees (default 800)")
+    cap.add_argument("--frames", type=int, default=100, help="video: how many sharp frames to keep (default 100)")
+    cap.add_argument("--keep-work", action="store_true", help="keep the SfM database and logs (OUT/_capture_work)")
     bench = sub.add_parser("benchmark", help="write a preset's benchmark definitions (views a method must use)")
     bench.add_argument("preset", help="an experiment preset, e.g. table2_goal")
     bench.add_argument("overrides", nargs="*", help="gopre-run overrides, e.g. 'dataset=[generated]' splat=cpu")
     bench.add_argument("--out", type=Path, required=True, help="the JSON file to write")
     args = parser.parse_args(argv)
     try:
+        if args.command == "capture":
+            from pipeline.data.capture import capture_scene
+            summary = capture_scene(args.source, args.out, args.max_size, args.frames,
+                                    progress=lambda line: print(line, file=sys.stderr, flush=True),
+                                    keep_work=args.keep_work)
+            print(json.dumps(summary.to_dict()))
+            print(f"{summary.registered}/{summary.images} images registered, {summary.points} points, "
+                  f"{summary.mean_reprojection_error_px:.2f} px mean reprojection error, {summary.seconds['total']:.0f} s; "
+                  f"scene: {summary.out} (capture.json)", file=sys.stderr)
+            return 0
         if args.command == "benchmark":
             print(json.dumps(write_benchmark(args.preset, args.overrides, args.out)))
             return 0

@@ -1,8 +1,10 @@
 """COLMAP reader (Mip-NeRF360, Tanks & Temples): a sparse model read with pycolmap, binary or text.
 
-Cameras: PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL and OPENCV. Images are expected undistorted: a
-model with non-zero distortion is refused with a message saying so (pass allow_distortion=True
-to use it anyway, ignoring the distortion). The image folder may hold any resolution (images_N,
+Cameras: PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV. A model with non-zero lens
+distortion is undistorted on load (COLMAP's image undistorter, to PINHOLE) into a cache folder
+(``GOPRE_CACHE``, default ``~/.cache/gopre/undistorted/<scene>-<hash of the model and images>``),
+never into the user's folder, and read from there; ``allow_distortion=True`` reads the distorted
+images as they are, ignoring the distortion (a test's shortcut, not a result). The image folder may hold any resolution (images_N,
 or a downsampled copy): intrinsics are rescaled from the actual size of the files. COLMAP's
 pixel convention (image corner at 0, first pixel centre at 0.5) is ours, so scaling is exact.
 """
@@ -18,7 +20,7 @@ from pipeline.cameras import Cameras
 from pipeline.data.images import DataError, ImageStore, image_size
 from pipeline.data.scene import Scene, Split
 
-SUPPORTED = {"PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "OPENCV"}
+SUPPORTED = {"PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"}
 
 
 # COLMAP camera model id -> number of parameters (src/colmap/sensor/models.h)
@@ -62,14 +64,108 @@ def _intrinsics(cam, path: Path, allow_distortion: bool) -> tuple[float, float, 
         fx, fy, cx, cy, dist = p[0], p[1], p[2], p[3], []
     elif model == "SIMPLE_PINHOLE":
         fx, fy, cx, cy, dist = p[0], p[0], p[1], p[2], []
-    elif model == "SIMPLE_RADIAL":
+    elif model in ("SIMPLE_RADIAL", "RADIAL"):  # f, cx, cy, k1 (, k2)
         fx, fy, cx, cy, dist = p[0], p[0], p[1], p[2], p[3:]
     else:  # OPENCV: fx, fy, cx, cy, k1, k2, p1, p2
         fx, fy, cx, cy, dist = p[0], p[1], p[2], p[3], p[4:]
     if any(abs(d) > 0 for d in dist) and not allow_distortion:
-        raise DataError(f"{path}: camera {cam.camera_id} ({model}) has non-zero distortion {dist}; "
-                        "undistorted images are expected (run COLMAP's image_undistorter)")
+        raise DataError(f"{path}: camera {cam.camera_id} ({model}) has non-zero distortion {dist} "
+                        "(read_colmap undistorts such a model first)")
     return fx, fy, cx, cy
+
+
+def distorted(rec) -> bool:
+    """Whether any camera of the model has non-zero distortion parameters."""
+    for cam in rec.cameras.values():
+        model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
+        extra = {"SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4}.get(model)
+        if extra is not None and any(abs(float(x)) > 0 for x in list(cam.params)[extra:]):
+            return True
+    return False
+
+
+def cache_root() -> Path:
+    import os
+    return Path(os.environ.get("GOPRE_CACHE", Path.home() / ".cache" / "gopre")) / "undistorted"
+
+
+def undistorted_copy(root: Path, sparse: Path, image_dir: Path, masks_dir: Path | None) -> Path:
+    """The scene undistorted to PINHOLE in the cache (made once; keyed by the model's files and
+    the images' names, sizes and times): ``<cache>/images``, ``<cache>/sparse/0``, ``<cache>/masks``."""
+    import hashlib
+    import os
+    import shutil
+
+    import pycolmap
+    digest = hashlib.sha256()
+    for path in sorted(sparse.iterdir()):
+        digest.update(path.name.encode() + path.read_bytes())
+    for folder in (image_dir, masks_dir):
+        for path in sorted(folder.iterdir()) if folder is not None else []:
+            st = path.stat()
+            digest.update(f"{folder.name}/{path.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    target = cache_root() / f"{root.name}-{digest.hexdigest()[:16]}"
+    if (target / "sparse" / "0" / "cameras.bin").exists():
+        return target
+    staging = target.with_name(f"{target.name}.tmp-{os.getpid()}")
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        pycolmap.undistort_images(staging / "u", sparse, image_dir)
+        (staging / "sparse").mkdir(parents=True)
+        shutil.move(str(staging / "u" / "sparse"), str(staging / "sparse" / "0"))
+        shutil.move(str(staging / "u" / "images"), str(staging / "images"))
+        if masks_dir is not None:
+            undistort_masks(sparse, image_dir, masks_dir, staging)
+        shutil.rmtree(staging / "u", ignore_errors=True)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(staging, target)
+    except OSError as err:
+        raise DataError(f"{root}: cannot write the undistorted copy under {cache_root()} ({err}); "
+                        "set GOPRE_CACHE to a writable folder") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
+def undistort_masks(sparse: Path, image_dir: Path, masks_dir: Path, staging: Path) -> None:
+    """Each image's mask through the same undistortion (nearest pixel kept at >= 0.5) into
+    ``staging/masks/<stem>.png``."""
+    import pycolmap
+    from PIL import Image
+    rgb = staging / "mask_rgb"
+    rgb.mkdir(parents=True)
+    for image in sorted(image_dir.iterdir()):
+        mask = mask_path(masks_dir, image.name)
+        if mask is not None:
+            with Image.open(mask) as im:
+                im.convert("RGB").save(rgb / image.name)
+    pycolmap.undistort_images(staging / "m", sparse, rgb)
+    (staging / "masks").mkdir()
+    for path in sorted((staging / "m" / "images").iterdir()):
+        with Image.open(path) as im:
+            values = np.asarray(im.convert("L"))
+        Image.fromarray(((values >= 128) * 255).astype(np.uint8)).save(staging / "masks" / f"{Path(path.name).stem}.png")
+
+
+def mask_path(masks_dir: Path, image_name: str) -> Path | None:
+    """An image's mask: ``<stem>.png``, the image's own name, or ``<stem>_mask.png``."""
+    stem = Path(image_name).stem
+    for name in (f"{stem}.png", image_name, f"{stem}_mask.png"):
+        if (masks_dir / name).is_file():
+            return masks_dir / name
+    return None
+
+
+def scene_masks(root: Path, masks_dir: Path, names: list[str], splits: dict[str, list[int]]) -> dict[str, list[Path]]:
+    """Per split the mask file of each image; a folder without masks, or an image without one,
+    is an error naming them."""
+    if not masks_dir.is_dir():
+        raise DataError(f"{root}: masks were asked for (data masks=true) but {masks_dir} does not exist")
+    paths = [mask_path(masks_dir, n) for n in names]
+    missing = [n for n, p in zip(names, paths) if p is None]
+    if missing:
+        raise DataError(f"{masks_dir}: no mask for {len(missing)} image(s): {', '.join(missing[:10])}")
+    return {split: [paths[i] for i in ids] for split, ids in splits.items()}
 
 
 # 3DGS's resolution rule: without an explicit width, images wider than 1600 px train at 1600 px.
@@ -78,12 +174,13 @@ MAX_DEFAULT_WIDTH = 1600
 
 def read_colmap(root: str | Path, width: int | None = None, images: str = "images",
                 background=(0.0, 0.0, 0.0), llff_hold: int = 8, allow_distortion: bool = False,
-                budget_mb: float = 1024.0) -> Scene:
+                budget_mb: float = 1024.0, masks: bool = False) -> Scene:
     """Read a COLMAP scene; images resized to ``width`` (None = as stored in ``images``, but at
     most ``MAX_DEFAULT_WIDTH`` px wide, 3DGS's rule).
 
     Splits: ``train`` and ``test`` by the LLFF hold-out (every ``llff_hold``-th image in name
-    order is a test view), and ``all`` in name order.
+    order is a test view), and ``all`` in name order. ``masks``: each image's mask from
+    ``root/masks`` (``<stem>.png``, the image's name or ``<stem>_mask.png``).
     """
     import pycolmap
 
@@ -102,6 +199,12 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
     image_dir = root / images
     if not image_dir.is_dir():
         raise DataError(f"{image_dir}: image folder does not exist")
+    if distorted(rec) and not allow_distortion:  # read the undistorted copy instead (cached)
+        copy = undistorted_copy(root, sparse, image_dir, root / "masks" if masks else None)
+        scene = read_colmap(copy, width, "images", background, llff_hold, False, budget_mb, masks)
+        scene.name, scene.root = root.name, root
+        scene.info["undistorted"] = str(copy)
+        return scene
     entries = sorted(rec.images.values(), key=lambda im: im.name)
     paths = [image_dir / im.name for im in entries]
     for path in paths:
@@ -135,9 +238,12 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
     pts = list(rec.points3D.values())
     points = torch.from_numpy(np.array([p.xyz for p in pts], dtype=np.float32)) if pts else None
     colors = torch.from_numpy(np.array([p.color for p in pts], dtype=np.float32)) / 255 if pts else None
+    mask_files = (scene_masks(root, root / "masks", names, {"all": list(range(len(names))), "train": train,
+                                                            "test": test}) if masks else None)
     return Scene(root.name, "colmap", root, splits, bg, points, colors,
                  info={"sparse": str(sparse), "model_size": [int(rec.cameras[entries[0].camera_id].width),
-                                                             int(rec.cameras[entries[0].camera_id].height)]})
+                                                             int(rec.cameras[entries[0].camera_id].height)]},
+                 masks=mask_files)
 
 
 def observations(root: str | Path, image_name: str):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 
@@ -114,3 +114,19 @@ class ImageStore:
         """[C, H, W, 3] for ``indices`` (all by default)."""
         indices = range(len(self)) if indices is None else indices
         return torch.stack([self[i] for i in indices])
+
+
+def read_mask(path: Path, size: tuple[int, int]) -> Tensor:
+    """A mask file as [H, W] float32 in {0, 1} at ``size`` (W, H): white (>= 128) = kept, resized
+    by the nearest pixel so it stays binary; an unreadable file is an error naming it."""
+    try:
+        with Image.open(path) as im:
+            im = im.convert("L")
+            if im.size != tuple(size):
+                im = im.resize(tuple(size), Image.NEAREST)
+            values = np.asarray(im)
+    except FileNotFoundError:
+        raise DataError(f"{path}: mask file not found") from None
+    except (OSError, UnidentifiedImageError) as err:
+        raise DataError(f"{path}: cannot read mask ({err})") from None
+    return torch.from_numpy((values >= 128).astype(np.float32))

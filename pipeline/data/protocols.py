@@ -72,8 +72,8 @@ class ProtocolViews:
 
 
 def scene_up(scene: Scene, cameras: Cameras) -> torch.Tensor:
-    """Blender-layout scenes are z-up; real scenes get the up axis estimated from the cameras."""
-    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if scene.format == "blender" else estimate_up(cameras)
+    """+z for a scene whose traits say so (the Blender layout); else estimated from the cameras."""
+    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if scene.traits.up == "z" else estimate_up(cameras)
 
 
 def uniform_initial(cameras: Cameras, ids: list[int], count: int, up: torch.Tensor) -> list[int]:
@@ -102,7 +102,7 @@ def resolved_manifold(data: dict, scene: Scene, up: torch.Tensor):
 
 
 def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
-    blender = scene.format == "blender"
+    blender = scene.traits.split == "given"  # the files' train / test splits (the Blender layout)
     real_default = not blender and cfg.kind != "sparse"
     initial = cfg.initial_views if cfg.initial_views is not None else (4 if real_default else 2)
     budget = cfg.budget if cfg.budget is not None else (20 if real_default else 10)

@@ -24,6 +24,21 @@ class Split:
         return len(self.names)
 
 
+@dataclass(frozen=True)
+class SceneTraits:
+    """What the protocols and the pose space need to know of a scene, set by its reader
+    (``pipeline.data.readers``) instead of asked of its format.
+
+    kind: ``object`` (photographed all around it: the pose space is the whole shell, the scene's
+    radius bounds it) | ``unbounded`` (cameras inside the scene). up: ``z`` (+z is up) |
+    ``estimated`` (from the cameras, ``manifolds.estimate_up``). split: ``given`` (the files' train
+    and test splits) | ``llff`` (every 8th image in name order held out)."""
+
+    kind: str = "unbounded"
+    up: str = "estimated"
+    split: str = "llff"
+
+
 @dataclass
 class Scene:
     """A scene: named splits, a background colour [3], and optional points [P, 3] with colours."""
@@ -37,6 +52,9 @@ class Scene:
     point_colors: Tensor | None = None
     box: tuple[Tensor, Tensor] | None = None  # initialisation box when there are no points
     info: dict = field(default_factory=dict)
+    traits: SceneTraits = field(default_factory=SceneTraits)
+    # per split, [C] mask files (white = the object, kept; black = ignored) when the capture has them
+    masks: dict[str, list[Path]] | None = None
 
     def split(self, name: str) -> Split:
         if name not in self.splits:

@@ -43,11 +43,26 @@ def _check_pair(pred: Tensor, gt: Tensor) -> None:
         raise ValueError(f"images must both be [H, W, 3], got {tuple(pred.shape)} and {tuple(gt.shape)}")
 
 
-def psnr_value(pred: Tensor, gt: Tensor) -> float:
-    """PSNR in dB of one view: pred, gt [H, W, 3] in [0, 1] (pred is clamped)."""
+def psnr_value(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> float:
+    """PSNR in dB of one view: pred, gt [H, W, 3] in [0, 1] (pred is clamped); with ``mask``
+    [H, W] (1 = counted), the mean squared error over the masked-in pixels only."""
     _check_pair(pred, gt)
-    mse = float((pred.clamp(0, 1).double() - gt.to(pred.device).double()).square().mean())
+    err = (pred.clamp(0, 1).double() - gt.to(pred.device).double()).square()
+    if mask is None:
+        mse = float(err.mean())
+    else:
+        weight = _mask_weight(mask, pred)
+        mse = float((err * weight[..., None]).sum() / (3 * weight.sum()))
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+def _mask_weight(mask: Tensor, pred: Tensor) -> Tensor:
+    if mask.shape != pred.shape[:2]:
+        raise ValueError(f"mask must be [H, W] = {tuple(pred.shape[:2])}, got {tuple(mask.shape)}")
+    weight = (mask.to(pred.device).double() >= 0.5).double()
+    if float(weight.sum()) == 0:
+        raise ValueError("mask: no pixel of this view is masked in (nothing to score)")
+    return weight
 
 
 def _gaussian_window_1d(size: int = 11, sigma: float = 1.5) -> np.ndarray:
@@ -59,9 +74,10 @@ def _gaussian_window_1d(size: int = 11, sigma: float = 1.5) -> np.ndarray:
 WINDOW_1D = _gaussian_window_1d()  # 3DGS's window: 11 taps, sigma 1.5; its 2-D window is the outer product
 
 
-def ssim_value(pred: Tensor, gt: Tensor) -> float:
+def ssim_value(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> float:
     """3DGS's SSIM of one view (zero-padded windows, the mean over all pixels and channels), in
-    float64: pred, gt [H, W, 3] in [0, 1] (pred is clamped)."""
+    float64: pred, gt [H, W, 3] in [0, 1] (pred is clamped); with ``mask`` [H, W], the SSIM map's
+    mean over the masked-in pixels only."""
     _check_pair(pred, gt)
     x = pred.detach().clamp(0, 1).double().cpu().numpy()
     y = gt.detach().double().cpu().numpy()
@@ -72,7 +88,11 @@ def ssim_value(pred: Tensor, gt: Tensor) -> float:
     mu_x, mu_y, exx, eyy, exy = local
     sxx, syy, sxy = exx - mu_x ** 2, eyy - mu_y ** 2, exy - mu_x * mu_y
     c1, c2 = 0.01 ** 2, 0.03 ** 2
-    return float((((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))).mean())
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
+    if mask is None:
+        return float(ssim_map.mean())
+    weight = _mask_weight(mask, pred).cpu().numpy()
+    return float((ssim_map * weight[..., None]).sum() / (3 * weight.sum()))
 
 
 def ssim_skimage_value(pred: Tensor, gt: Tensor) -> float:
@@ -129,18 +149,24 @@ class ViewMetrics:
 @torch.no_grad()
 def evaluate_views(gaussians: Gaussians, cameras: Cameras, images: Tensor, background: Tensor,
                    lpips: LpipsMetric | None = None, settings: RenderSettings = RenderSettings(),
-                   ssim: bool = True) -> ViewMetrics:
+                   ssim: bool = True, masks: Tensor | None = None) -> ViewMetrics:
     """Render each camera [C] and compare with ``images`` [C, H, W, 3]. On the compiled backend
-    the views are rendered and scored side by side, one per thread (the same numbers)."""
+    the views are rendered and scored side by side, one per thread (the same numbers).
+    ``masks`` [C, H, W] (1 = the object): PSNR and SSIM over the masked-in pixels only;
+    scikit-image's SSIM and LPIPS see the render with its masked-out pixels set to the truth's."""
     if images.shape[0] != len(cameras):
         raise ValueError(f"{images.shape[0]} images for {len(cameras)} cameras")
+    if masks is not None and masks.shape != images.shape[:3]:
+        raise ValueError(f"masks must be [C, H, W] = {tuple(images.shape[:3])}, got {tuple(masks.shape)}")
 
     def one_view(i: int) -> tuple[Tensor, float, float, float]:
         with torch.no_grad():  # grad mode is per thread
             pred = render(gaussians, cameras[i], background, settings=settings).rgb[0].clamp(0, 1)
-            return (pred, psnr_value(pred, images[i]),
-                    ssim_value(pred, images[i]) if ssim else float("nan"),
-                    ssim_skimage_value(pred, images[i]) if ssim else float("nan"))
+            mask = None if masks is None else masks[i]
+            whole = pred if mask is None else torch.where(mask[..., None] >= 0.5, pred, images[i].to(pred))
+            return (whole, psnr_value(pred, images[i], mask),
+                    ssim_value(pred, images[i], mask) if ssim else float("nan"),
+                    ssim_skimage_value(whole, images[i]) if ssim else float("nan"))
 
     compiled_views = compiled.resolve_backend(settings.backend, gaussians.means.device) == "compiled"
     threads = compiled.use_threads() if compiled_views else 1

@@ -183,6 +183,8 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                          else world)
             if job_world is not None:  # part of what the job computes (absent for the pool)
                 job["world"] = copy.deepcopy(job_world)
+            if dset.get("masks"):  # train and evaluate on the capture's masked-in pixels only
+                job["masks"] = True
             if plugins[mname] is not None:  # the plugin's code is part of what the job computes
                 job["plugin"] = plugins[mname]
             job["config_hash"] = config_hash(job)
@@ -251,7 +253,7 @@ def episode_config(job: Job) -> EpisodeConfig:
             changes["curve_test_views"] = None
         changes.update(world_changes(job.world))
         return replace(base, fit=fit, protocol=protocol, strategy=job.strategy,
-                       strategy_options=dict(job.options), seed=job.seed, **changes)
+                       strategy_options=dict(job.options), seed=job.seed, masks=bool(job.masks), **changes)
     except ConfigError:
         raise
     except (ValueError, TypeError) as err:

@@ -47,7 +47,7 @@ class LocalExecutor:
 
 
 def scene_key(job: Job) -> str:
-    return f"{job.scene_path}@{job.splat.get('image_width')}/{job.splat['preset']}"
+    return f"{job.scene_path}@{job.splat.get('image_width')}/{job.splat['preset']}" + ("+masks" if job.masks else "")
 
 
 def _remote_run(plain_job: dict, scene: Scene | None, queue=None) -> dict:

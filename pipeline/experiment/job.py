@@ -155,7 +155,7 @@ def run_job(job: Job, scene: Scene | None = None, report: Report | None = None) 
     folder = Path(ex.job_dir)
     folder.mkdir(parents=True, exist_ok=True)
     if scene is None:
-        scene = load_scene(job.scene_path, width=job.episode.fit.image_width)
+        scene = load_scene(job.scene_path, width=job.episode.fit.image_width, masks=job.masks)
     start = time.perf_counter()
     runner = run_uncertainty_job if job.kind == "uncertainty" else run_episode_job
     outcome = runner(job, scene, folder, report)

@@ -32,6 +32,6 @@ def scene_of(job: Job, result: dict | None, scene: str | None = None,
     tried = scene_candidates(job, result, scene, data_root)
     for path in tried:
         if Path(path).exists():
-            return load_scene(path, width=width)
+            return load_scene(path, width=width, masks=job.masks)
     raise ValueError(f"the scene of job {job.config_hash} is not here: tried {', '.join(tried)} "
                      "(pass --scene PATH, or --data-root for a sweep copied from another machine)")

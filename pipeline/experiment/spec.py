@@ -56,14 +56,15 @@ class Job:
     # a strategy from outside the package: its PluginIdentity as a dict (reference, distribution,
     # version, source_sha256), part of the hash so a changed plugin is re-run; None for a built-in
     plugin: dict | None = None
+    masks: bool = False              # the dataset's masks: training and evaluation ignore masked-out pixels
 
     def to_dict(self) -> dict:
         """The plain form, key for key as ``jobs.json`` has always held it (``world`` only when a
         job captures off the pool, so a pool job's hash is what it always was)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["execution"] = asdict(self.execution) if self.execution is not None else None
-        for optional in ("world", "plugin"):  # absent when unused: a built-in job's hash is unchanged
-            if out[optional] is None:
+        for optional in ("world", "plugin", "masks"):  # absent when unused: older jobs hash as before
+            if out[optional] in (None, False):
                 del out[optional]
         return out
 

@@ -129,7 +129,7 @@ def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200),
                      progress=every_quarter)
         try:
-            scene = load_scene(path, width=job.episode.fit.image_width)
+            scene = load_scene(path, width=job.episode.fit.image_width, masks=job.masks)
         except Exception as err:
             errors.append(f"dataset.{job.dataset} scene {job.scene!r}: {err}")
             continue

@@ -44,9 +44,11 @@ class StepGradients:
 
 def fused_step_gradients(params: dict[str, Tensor], camera: Cameras, background: Tensor,
                          sh_degree: int, settings: RenderSettings, target: Tensor,
-                         ssim_weight: float) -> StepGradients:
+                         ssim_weight: float, mask: Tensor | None = None) -> StepGradients:
     """Render ``camera`` [1] from the raw ``params`` (CPU), the photometric loss against
-    ``target`` [H, W, 3], and the gradients of every raw parameter."""
+    ``target`` [H, W, 3], and the gradients of every raw parameter. ``mask`` [H, W] (1 = kept):
+    the loss of the masked render against the masked target (``losses.masked_pair``), so a
+    masked-out pixel gives no gradient."""
     if target.shape != (camera.height, camera.width, 3):
         raise ValueError(f"target must be [{camera.height}, {camera.width}, 3], got "
                          f"{tuple(target.shape)}")
@@ -57,8 +59,14 @@ def fused_step_gradients(params: dict[str, Tensor], camera: Cameras, background:
     dtype = arrays[0].dtype
     bg = compiled.to_numpy(background.to(params["means"].dtype))
     fwd = compiled_forward(arrays, cam, bg, settings.tile_size, workers)
-    value, grad = loss_kernels.photometric_value_and_grad(
-        fwd.rgb, compiled.to_numpy(target), float(ssim_weight), window_taps(11, 1.5), workers)
+    if mask is None:
+        value, grad = loss_kernels.photometric_value_and_grad(
+            fwd.rgb, compiled.to_numpy(target), float(ssim_weight), window_taps(11, 1.5), workers)
+    else:  # d L(rgb * m) / d rgb = m * L'(rgb * m)
+        keep = compiled.to_numpy(mask.to(target.dtype))[..., None].astype(fwd.rgb.dtype)
+        value, grad = loss_kernels.photometric_value_and_grad(
+            fwd.rgb * keep, compiled.to_numpy(target) * keep, float(ssim_weight), window_taps(11, 1.5), workers)
+        grad = grad * keep
     grads, g_means2d = compiled_backward(fwd, grad.astype(dtype), workers)
     return StepGradients(float(np.asarray(value, dtype=dtype)),
                          {name: torch.from_numpy(g) for name, g in zip(PARAM_ORDER, grads)},

@@ -48,6 +48,16 @@ def photometric_loss(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tens
     return (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - ssim(img, ref))
 
 
+def masked_pair(img: Tensor, ref: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """The training loss's inputs under a mask [H, W] (1 = kept, 0 = ignored, e.g. a visitor walking
+    through a capture): both images multiplied by it, so a masked-out pixel adds nothing to the
+    loss and gives no gradient (nerfstudio's splatfacto does the same). None: unchanged."""
+    if mask is None:
+        return img, ref
+    keep = mask.to(img)[..., None]
+    return img * keep, ref * keep
+
+
 def psnr(img: Tensor, ref: Tensor) -> Tensor:
     """PSNR in dB of images in [0, 1] (mean squared error over all pixels and channels)."""
     mse = (img.clamp(0, 1) - ref).square().mean()

@@ -23,7 +23,7 @@ from pipeline.cameras import Cameras
 from pipeline.fit.config import FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
 from pipeline.fit.fused_step import StepGradients, fused_step_gradients
-from pipeline.fit.losses import photometric_loss, psnr
+from pipeline.fit.losses import masked_pair, photometric_loss, psnr
 from pipeline.splat import Gaussians, RenderSettings, render
 from pipeline.splat.gaussians import all_finite
 from pipeline.splat.training_view import fused_training_step, training_view_generic
@@ -75,7 +75,8 @@ class Trainer:
 
     def __init__(self, gaussians: Gaussians, cameras: Cameras, images: Tensor, config: FitConfig,
                  background: Tensor | None = None, extent: float | None = None,
-                 render_settings: RenderSettings = RenderSettings(), nonfinite_dir: Path | None = None):
+                 render_settings: RenderSettings = RenderSettings(), nonfinite_dir: Path | None = None,
+                 masks: Tensor | None = None):
         self.config = config
         self.nonfinite_dir = nonfinite_dir
         self.nonfinite_steps = 0  # skipped steps (non-finite loss or gradient)
@@ -94,10 +95,12 @@ class Trainer:
             fused=True)
         self.stats = DensifyStats.zeros(len(gaussians), images)
         self._order: list[int] = []
-        self.set_views(cameras, images)
+        self.set_views(cameras, images, masks)
 
     # -- views --------------------------------------------------------------------------------
-    def set_views(self, cameras: Cameras, images: Tensor) -> None:
+    def set_views(self, cameras: Cameras, images: Tensor, masks: Tensor | None = None) -> None:
+        """The training views: cameras [C], images [C, H, W, 3]; ``masks`` [C, H, W] (1 = kept):
+        the loss ignores masked-out pixels (``losses.masked_pair``)."""
         if images.ndim != 4 or images.shape[-1] != 3 or images.shape[0] != len(cameras):
             raise ValueError(f"images must be [C, H, W, 3] with C={len(cameras)}, got "
                              f"{tuple(images.shape)}")
@@ -106,7 +109,9 @@ class Trainer:
                              f"{cameras.width}x{cameras.height}")
         if not bool(torch.isfinite(images).all()):
             raise ValueError("images contain NaN or inf")
-        self.cameras, self.images = cameras, images
+        if masks is not None and masks.shape != images.shape[:3]:
+            raise ValueError(f"masks must be [C, H, W] = {tuple(images.shape[:3])}, got {tuple(masks.shape)}")
+        self.cameras, self.images, self.masks = cameras, images, masks
         self._view_cameras = [cameras[i] for i in range(len(cameras))]  # one per step otherwise
         self._order = []
 
@@ -171,11 +176,12 @@ class Trainer:
                 group["lr"] = self._means_lr()
         view = self._next_view()
         cams, target = self._view_cameras[view], self.images[view]
+        mask = None if self.masks is None else self.masks[view]
         self._clear_grads()
         if fused_training_step(self.settings, self.background.device):
-            step = self._fused_gradients(cams, target)
+            step = self._fused_gradients(cams, target, mask)
         else:
-            step = self._autograd_gradients(cams, target)
+            step = self._autograd_gradients(cams, target, mask)
         if not self._finite(step.loss):
             self._clear_grads()
             self._skip(view, step.loss)
@@ -187,21 +193,21 @@ class Trainer:
         self._density_control()
         return StepInfo(self.step, step.loss, self.params["means"].shape[0], step.image, target)
 
-    def _fused_gradients(self, cams: Cameras, target: Tensor) -> StepGradients:
+    def _fused_gradients(self, cams: Cameras, target: Tensor, mask: Tensor | None = None) -> StepGradients:
         """The fused compiled step, no autograd: loss and gradients from the kernels, the
         gradients set on the parameters."""
         step = fused_step_gradients(self.params, cams, self.background, self.active_sh_degree,
-                                    self.settings, target, self.config.ssim_weight)
+                                    self.settings, target, self.config.ssim_weight, mask)
         for name, p in self.params.items():
             p.grad = step.grads[name]
         return step
 
-    def _autograd_gradients(self, cams: Cameras, target: Tensor) -> StepGradients:
+    def _autograd_gradients(self, cams: Cameras, target: Tensor, mask: Tensor | None = None) -> StepGradients:
         """The step through autograd: ``render`` (any backend) and the torch loss (the oracles of
         the fused step); the gradients land on the parameters (``grads`` is empty)."""
         out = training_view_generic(self.gaussians_for_grad(), cams, self.background,
                                     self.active_sh_degree, self.settings)
-        loss = photometric_loss(out.image, target, self.config.ssim_weight)
+        loss = photometric_loss(*masked_pair(out.image, target, mask), self.config.ssim_weight)
         loss.backward()
         return StepGradients(float(loss.detach()), {}, out.image.detach(), out.radii,
                              out.means2d_grad())

@@ -1,0 +1,249 @@
+"""Photos (or a video) in, a COLMAP scene out: structure-from-motion with pycolmap on the CPU.
+
+    capture_scene(PHOTOS_DIR | VIDEO, OUT)
+
+1. the inputs: every image of the folder (unreadable files named before any work), or sharp
+   frames chosen evenly from a video (``video.sharp_frames``); copies resized to at most
+   ``max_size`` px (the user's files are never written);
+2. SIFT features (one shared SIMPLE_RADIAL camera), matching (exhaustive for a photo set,
+   sequential for video frames), incremental mapping; the largest model is kept and the others
+   are listed; fewer than half of the images registered is an error naming the ones that did not;
+3. the kept model undistorted to a PINHOLE camera (COLMAP's image undistorter) into
+   ``OUT/images`` + ``OUT/sparse/0``; masks that come with the photos (``masks/`` beside them, named
+   like the photo or ``<stem>_mask.png``) are undistorted the same way into ``OUT/masks``;
+4. ``OUT/capture.json``: images, registered, points, mean reprojection error, seconds per stage,
+   the photos that did not register and the sizes of the models that were left out.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from pipeline.data.images import DataError
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
+MIN_IMAGES = 8               # fewer cannot cover an object well enough to pick views from
+EXHAUSTIVE_UP_TO = 200       # photo sets above this are matched sequentially (pairs grow as n^2)
+
+
+class CaptureError(DataError):
+    """A capture that cannot become a scene; the message names the files."""
+
+
+@dataclass
+class CaptureSummary:
+    source: str
+    out: str
+    images: int
+    registered: int
+    points: int
+    mean_reprojection_error_px: float
+    camera_model: str
+    matcher: str
+    seconds: dict[str, float] = field(default_factory=dict)
+    unregistered: list[str] = field(default_factory=list)
+    other_models: list[int] = field(default_factory=list)   # registered images of each model left out
+    masks: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+Progress = Callable[[str], None]
+
+
+def photo_files(folder: Path) -> list[Path]:
+    """The images of a photo folder in name order; unreadable ones are an error naming each."""
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    bad = []
+    for path in files:
+        try:
+            with Image.open(path) as im:
+                im.verify()
+        except (UnidentifiedImageError, OSError, SyntaxError) as err:
+            bad.append(f"{path.name} ({err})")
+    if bad:
+        raise CaptureError(f"{folder}: {len(bad)} unreadable image file(s): {', '.join(bad[:10])}"
+                           + (" ..." if len(bad) > 10 else ""))
+    return files
+
+
+def mask_file(masks: Path, photo: Path) -> Path | None:
+    """A photo's mask in ``masks``: the same name, ``<stem>.png`` or ``<stem>_mask.png``."""
+    for name in (photo.name, f"{photo.stem}.png", f"{photo.stem}_mask.png"):
+        if (masks / name).is_file():
+            return masks / name
+    return None
+
+
+def resized_copy(src: Path, dst: Path, max_size: int, mode: str = "RGB") -> None:
+    with Image.open(src) as im:
+        im = im.convert(mode)
+        scale = max_size / max(im.size)
+        if scale < 1:
+            im = im.resize((round(im.width * scale), round(im.height * scale)),
+                           Image.LANCZOS if mode == "RGB" else Image.NEAREST)
+        im.save(dst, quality=95) if dst.suffix.lower() in (".jpg", ".jpeg") else im.save(dst)
+
+
+def prepare_inputs(source: Path, work: Path, max_size: int, frames: int, say: Progress) -> tuple[list[str], str, int]:
+    """Copies of the inputs in ``work/images`` (and ``work/masks``); returns the image names, the
+    matcher (exhaustive | sequential) and the number of masks."""
+    images_dir, masks_dir = work / "images", work / "masks"
+    images_dir.mkdir(parents=True)
+    if source.is_file():
+        if source.suffix.lower() not in VIDEO_SUFFIXES:
+            raise CaptureError(f"{source}: not a photo folder or a video ({', '.join(VIDEO_SUFFIXES)})")
+        from pipeline.data.video import sharp_frames
+        chosen = sharp_frames(source, frames, say)
+        names = []
+        for k, frame in enumerate(chosen):
+            name = f"frame_{k:05d}.jpg"
+            Image.fromarray(frame).save(images_dir / name, quality=95)
+            resized_copy(images_dir / name, images_dir / name, max_size)
+            names.append(name)
+        return names, "sequential", 0
+    if not source.is_dir():
+        raise CaptureError(f"{source}: no such folder or video file")
+    photos = photo_files(source)
+    if len(photos) < MIN_IMAGES:
+        raise CaptureError(f"{source}: {len(photos)} image(s); a capture needs at least {MIN_IMAGES} photos "
+                           "taken all around the object")
+    masks_src = source.parent / "masks" if (source.parent / "masks").is_dir() else source / "masks"
+    count = 0
+    for k, photo in enumerate(photos):
+        resized_copy(photo, images_dir / photo.name, max_size)
+        mask = mask_file(masks_src, photo) if masks_src.is_dir() else None
+        if mask is not None:
+            masks_dir.mkdir(exist_ok=True)
+            resized_copy(mask, masks_dir / photo.name, max_size, mode="L")
+            count += 1
+        if (k + 1) % max(1, len(photos) // 4) == 0 or k + 1 == len(photos):
+            say(f"inputs: {k + 1}/{len(photos)} photos copied (at most {max_size} px)")
+    if 0 < count < len(photos):
+        raise CaptureError(f"{masks_src}: masks for {count} of {len(photos)} photos; give one per photo or none")
+    return [p.name for p in photos], "exhaustive" if len(photos) <= EXHAUSTIVE_UP_TO else "sequential", count
+
+
+def quiet_colmap(log_dir: Path) -> None:
+    """COLMAP's own log (a line per image and pair) goes to files in ``log_dir``, not the console:
+    the console gets this module's stage lines."""
+    import pycolmap
+    log_dir.mkdir(parents=True, exist_ok=True)
+    pycolmap.logging.logtostderr = False
+    pycolmap.logging.alsologtostderr = False
+    pycolmap.logging.stderrthreshold = pycolmap.logging.ERROR
+    pycolmap.logging.log_dir = str(log_dir)
+
+
+def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, seconds: dict) -> tuple:
+    """SIFT, matching and incremental mapping; returns (largest model, the others' sizes)."""
+    import pycolmap
+    quiet_colmap(work / "colmap_logs")
+    db, images_dir = work / "database.db", work / "images"
+    start = time.perf_counter()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_RADIAL"
+    say(f"features: SIFT on {len(names)} images ...")
+    pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, device=pycolmap.Device.cpu)
+    seconds["features"] = round(time.perf_counter() - start, 1)
+    start = time.perf_counter()
+    say(f"matching: {matcher} ({len(names) * (len(names) - 1) // 2 if matcher == 'exhaustive' else 'neighbouring'}"
+        " pairs) ...")
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
+    seconds["matching"] = round(time.perf_counter() - start, 1)
+    start = time.perf_counter()
+    registered = [0]
+
+    def next_image():
+        registered[0] += 1
+        if registered[0] % max(1, len(names) // 10) == 0:
+            say(f"mapping: {registered[0]}/{len(names)} images registered")
+    models = pycolmap.incremental_mapping(db, images_dir, work / "sparse", next_image_callback=next_image)
+    seconds["mapping"] = round(time.perf_counter() - start, 1)
+    if not models:
+        raise CaptureError(f"{work / 'images'}: structure-from-motion registered no model (too few matches: "
+                           "more overlap between photos, more texture, or a sharper capture)")
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    return ranked[0], [r.num_reg_images() for r in ranked[1:]]
+
+
+def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
+    """The kept model and its images undistorted to PINHOLE in ``out`` (images/, sparse/0/);
+    masks through the same cameras into ``out/masks`` (binarised at 0.5)."""
+    import pycolmap
+    staging = work / "undistorted"
+    pycolmap.undistort_images(staging, model_dir, work / "images")
+    (out / "sparse").mkdir(parents=True, exist_ok=True)
+    shutil.copytree(staging / "sparse", out / "sparse" / "0", dirs_exist_ok=True)
+    shutil.copytree(staging / "images", out / "images", dirs_exist_ok=True)
+    if has_masks:
+        masks_staging = work / "undistorted_masks"
+        rgb = work / "masks_rgb"
+        rgb.mkdir()
+        for mask in (work / "masks").iterdir():  # the undistorter reads colour images
+            with Image.open(mask) as im:
+                im.convert("RGB").save(rgb / mask.name)
+        pycolmap.undistort_images(masks_staging, model_dir, rgb)
+        (out / "masks").mkdir(exist_ok=True)
+        for mask in (masks_staging / "images").iterdir():
+            with Image.open(mask) as im:
+                values = np.asarray(im.convert("L"))
+            Image.fromarray(((values >= 128) * 255).astype(np.uint8)).save((out / "masks" / mask.name).with_suffix(".png"))
+
+
+def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, frames: int = 100,
+                  progress: Progress | None = None, keep_work: bool = False) -> CaptureSummary:
+    """Reconstruct ``source`` (a photo folder or a video) into the COLMAP scene ``out``."""
+    source, out = Path(source), Path(out)
+    say = progress or (lambda line: None)
+    if out.exists() and any(out.iterdir()):
+        raise CaptureError(f"{out}: the output folder exists and is not empty (choose a new --out)")
+    if max_size < 64:
+        raise CaptureError(f"max_size must be at least 64 px, got {max_size}")
+    out.mkdir(parents=True, exist_ok=True)
+    work = out / "_capture_work"
+    seconds: dict[str, float] = {}
+    start = time.perf_counter()
+    try:
+        names, matcher, masks = prepare_inputs(source, work, max_size, frames, say)
+        seconds["inputs"] = round(time.perf_counter() - start, 1)
+        model, others = reconstruct(work, names, matcher, say, seconds)
+        registered = {model.image(i).name for i in model.reg_image_ids()}
+        missing = [n for n in names if n not in registered]
+        if len(registered) * 2 < len(names):
+            raise CaptureError(f"{source}: only {len(registered)} of {len(names)} images registered in the largest "
+                               f"model (others: {others or 'none'}); not registered: {', '.join(missing[:20])}"
+                               + (" ..." if len(missing) > 20 else ""))
+        model_dir = work / "kept"
+        model_dir.mkdir()
+        model.write(model_dir)
+        t = time.perf_counter()
+        say(f"undistorting {len(registered)} images{' and masks' if masks else ''} to PINHOLE ...")
+        undistort(work, model_dir, out, masks > 0)
+        seconds["undistortion"] = round(time.perf_counter() - t, 1)
+    except BaseException:
+        if not keep_work:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    if not keep_work:
+        shutil.rmtree(work, ignore_errors=True)
+    seconds["total"] = round(time.perf_counter() - start, 1)
+    summary = CaptureSummary(str(source), str(out), len(names), len(registered), model.num_points3D(),
+                             round(float(model.compute_mean_reprojection_error()), 4), "SIMPLE_RADIAL -> PINHOLE",
+                             matcher, seconds, missing, others, masks)
+    (out / "capture.json").write_text(json.dumps(summary.to_dict(), indent=1) + "\n")
+    return summary
