@@ -110,6 +110,7 @@ def undistorted_copy(root: Path, sparse: Path, image_dir: Path, masks_dir: Path 
     staging = target.with_name(f"{target.name}.tmp-{os.getpid()}")
     shutil.rmtree(staging, ignore_errors=True)
     try:
+        staging.mkdir(parents=True)
         pycolmap.undistort_images(staging / "u", sparse, image_dir)
         (staging / "sparse").mkdir(parents=True)
         shutil.move(str(staging / "u" / "sparse"), str(staging / "sparse" / "0"))
@@ -119,7 +120,7 @@ def undistorted_copy(root: Path, sparse: Path, image_dir: Path, masks_dir: Path 
         shutil.rmtree(staging / "u", ignore_errors=True)
         target.parent.mkdir(parents=True, exist_ok=True)
         os.replace(staging, target)
-    except OSError as err:
+    except (OSError, RuntimeError) as err:  # pycolmap reports a file system error as RuntimeError
         raise DataError(f"{root}: cannot write the undistorted copy under {cache_root()} ({err}); "
                         "set GOPRE_CACHE to a writable folder") from None
     finally:

@@ -125,14 +125,18 @@ def colmap_text_model(frames: list[dict], cams: list[dict], names: list[str], sp
     viewmats = c2w_opengl_to_viewmat(c2w).numpy()
     camera_lines, image_lines = [], []
     for i, (cam, vm, name) in enumerate(zip(cams, viewmats, names), start=1):
-        camera_lines.append(f"{i} OPENCV {int(cam['w'])} {int(cam['h'])} {cam['fl_x']!r} {cam['fl_y']!r} "
-                            f"{cam['cx']!r} {cam['cy']!r} {cam['k1']!r} {cam['k2']!r} {cam['p1']!r} {cam['p2']!r}")
+        params = [cam[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2")]
+        camera_lines.append(f"{i} OPENCV {int(cam['w'])} {int(cam['h'])} " + " ".join(_num(p) for p in params))
         x, y, z, w = Rotation.from_matrix(vm[:3, :3]).as_quat()
-        t = vm[:3, 3]
-        image_lines.append(f"{i} {w!r} {x!r} {y!r} {z!r} {t[0]!r} {t[1]!r} {t[2]!r} {i} {name}\n")
+        pose = [w, x, y, z, *vm[:3, 3]]
+        image_lines.append(f"{i} " + " ".join(_num(p) for p in pose) + f" {i} {name}\n")
     (sparse / "cameras.txt").write_text("\n".join(camera_lines) + "\n")
     (sparse / "images.txt").write_text("\n".join(image_lines) + "\n")
     (sparse / "points3D.txt").write_text("")
+
+
+def _num(value) -> str:
+    return f"{float(value):.17g}"
 
 
 def _undistorted(root: Path, frames, cams, images, mask_files, width, llff_hold, background) -> Scene:
