@@ -142,13 +142,13 @@ def main(argv=None) -> int:
     try:
         if args.command == "capture":
             from pipeline.data.capture import capture_scene
-            summary = capture_scene(args.source, args.out, args.max_size, args.frames,
-                                    progress=lambda line: print(line, file=sys.stderr, flush=True),
-                                    keep_work=args.keep_work)
-            print(json.dumps(summary.to_dict()))
-            print(f"{summary.registered}/{summary.images} images registered, {summary.points} points, "
-                  f"{summary.mean_reprojection_error_px:.2f} px mean reprojection error, {summary.seconds['total']:.0f} s; "
-                  f"scene: {summary.out} (capture.json)", file=sys.stderr)
+            made = capture_scene(args.source, args.out, args.max_size, args.frames,
+                                 progress=lambda line: print(line, file=sys.stderr, flush=True),
+                                 keep_work=args.keep_work)
+            print(json.dumps(made.to_dict()))
+            print(f"{made.registered}/{made.images} images registered, {made.points} points, "
+                  f"{made.mean_reprojection_error_px:.2f} px mean reprojection error, {made.seconds['total']:.0f} s; "
+                  f"scene: {made.out} (capture.json)", file=sys.stderr)
             return 0
         if args.command == "benchmark":
             print(json.dumps(write_benchmark(args.preset, args.overrides, args.out)))
