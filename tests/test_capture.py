@@ -319,3 +319,11 @@ def test_capture_recovers_the_generated_scenes_poses(tmp_path):
     a, b, _ = matched(truth.names, truth.cameras, est.names, est.cameras)
     errors = pose_errors(a, b)
     assert errors.median_centre_error < 0.01 and errors.median_rotation_error_deg < 0.5, errors
+
+
+def test_umeyama_never_returns_a_reflection():
+    """A mirrored point set is best fitted by a reflection; a pose alignment must stay a rotation."""
+    gen = torch.Generator().manual_seed(1)
+    pts = torch.randn(20, 3, generator=gen, dtype=torch.float64) * torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64)
+    s, r, _ = umeyama(pts, pts * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+    assert torch.det(r) == pytest.approx(1.0) and torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64))

@@ -10,6 +10,8 @@
                                        structure-from-motion (pycolmap, CPU) of your own photos or
                                        video into a COLMAP scene (undistorted, masks kept), with
                                        SCENE/capture.json: registered images, points, reprojection error
+    gopre-data cameras SCENE --out FIG.png
+                                       the scene's cameras from above and the side, its goal sector
     gopre-data benchmark PRESET [KEY=VALUE ...] --out FILE
                                        the preset's benchmark definitions: per (scene, seed) the initial
                                        views, pool, goal probes per round, test views with image hashes
@@ -134,6 +136,9 @@ def main(argv=None) -> int:
     cap.add_argument("--max-size", type=int, default=800, help="longest side of the images SfM sees (default 800)")
     cap.add_argument("--frames", type=int, default=100, help="video: how many sharp frames to keep (default 100)")
     cap.add_argument("--keep-work", action="store_true", help="keep the SfM database and logs (OUT/_capture_work)")
+    figure = sub.add_parser("cameras", help="a figure of a scene's cameras and its goal sector (no images)")
+    figure.add_argument("scene", type=Path)
+    figure.add_argument("--out", type=Path, required=True, help="the figure file (.png or .pdf)")
     bench = sub.add_parser("benchmark", help="write a preset's benchmark definitions (views a method must use)")
     bench.add_argument("preset", help="an experiment preset, e.g. table2_goal")
     bench.add_argument("overrides", nargs="*", help="gopre-run overrides, e.g. 'dataset=[generated]' splat=cpu")
@@ -149,6 +154,10 @@ def main(argv=None) -> int:
             print(f"{made.registered}/{made.images} images registered, {made.points} points, "
                   f"{made.mean_reprojection_error_px:.2f} px mean reprojection error, {made.seconds['total']:.0f} s; "
                   f"scene: {made.out} (capture.json)", file=sys.stderr)
+            return 0
+        if args.command == "cameras":
+            from pipeline.cli.scene_figure import camera_figure
+            print(json.dumps(camera_figure(args.scene, args.out)))
             return 0
         if args.command == "benchmark":
             print(json.dumps(write_benchmark(args.preset, args.overrides, args.out)))

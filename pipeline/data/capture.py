@@ -171,14 +171,18 @@ def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, secon
     def next_image():
         registered[0] += 1
         if registered[0] % max(1, len(names) // 10) == 0:
-            say(f"mapping: {registered[0]}/{len(names)} images registered")
+            say(f"mapping: {min(registered[0], len(names))}/{len(names)} images tried (a retried image counts again)")
     models = pycolmap.incremental_mapping(db, images_dir, work / "sparse", next_image_callback=next_image)
     seconds["mapping"] = round(time.perf_counter() - start, 1)
     if not models:
         raise CaptureError(f"{work / 'images'}: structure-from-motion registered no model (too few matches: "
                            "more overlap between photos, more texture, or a sharper capture)")
     ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
-    return ranked[0], [r.num_reg_images() for r in ranked[1:]]
+    others = [r.num_reg_images() for r in ranked[1:]]
+    if others:
+        say(f"mapping: {len(ranked)} disconnected models; kept the largest ({ranked[0].num_reg_images()} images), "
+            f"left out models of {others} images (capture.json lists them)")
+    return ranked[0], others
 
 
 def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
