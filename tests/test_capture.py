@@ -327,3 +327,23 @@ def test_umeyama_never_returns_a_reflection():
     pts = torch.randn(20, 3, generator=gen, dtype=torch.float64) * torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64)
     s, r, _ = umeyama(pts, pts * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
     assert torch.det(r) == pytest.approx(1.0) and torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64))
+
+
+def test_a_video_becomes_evenly_spread_sharp_frames_matched_sequentially(tmp_path):
+    av = pytest.importorskip("av")
+    from pipeline.data.capture import prepare_inputs
+    rng = np.random.default_rng(1)
+    path = tmp_path / "walk.mp4"
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("mpeg4", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 96, 64, "yuv420p"
+        stream.bit_rate = 4_000_000
+        for k in range(30):
+            frame = (rng.random((64, 96, 3)) * 255).astype(np.uint8) if k % 5 == 2 else np.full((64, 96, 3), 90, np.uint8)
+            out.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
+        out.mux(stream.encode())
+    names, matcher, masks = prepare_inputs(path, tmp_path / "work", max_size=64, frames=6, say=lambda line: None)
+    assert matcher == "sequential" and masks == 0 and names == [f"frame_{k:05d}.jpg" for k in range(6)]
+    sizes = {Image.open(tmp_path / "work" / "images" / n).size for n in names}
+    assert sizes == {(64, 43)}  # the longest side at max_size
+    assert all(sharpness(np.asarray(Image.open(tmp_path / "work" / "images" / n))) > 100 for n in names)
