@@ -211,7 +211,7 @@ def test_load_scene_errors_name_the_folder(tmp_path):
     with pytest.raises(DataError, match="nope: no such folder"):
         load_scene(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(DataError, match="empty: neither a Blender scene"):
+    with pytest.raises(DataError, match="empty: not a scene folder of any known format: blender"):
         load_scene(tmp_path / "empty")
 
 

@@ -62,7 +62,7 @@ def job_for(preset: str, initial: int, budget: int, policy: str | None) -> Simpl
         splat["post_selection"] = policy
     protocol = {"kind": "global", "initial_views": initial, "budget": budget}
     return SimpleNamespace(splat=job_form(splat), protocol=protocol, strategy="random", options={}, seed=0,
-                           method="random", scene="s", world=None)
+                           method="random", scene="s", world=None, masks=False)
 
 
 @pytest.mark.parametrize("policy", [None, "reload", "continue"])

@@ -60,6 +60,11 @@ READERS = (
 BY_FORMAT = {r.format: r for r in READERS}
 
 
+def traits_of(format: str) -> SceneTraits:
+    """A format's traits (an unknown format: a real scene's)."""
+    return BY_FORMAT[format].traits if format in BY_FORMAT else REAL
+
+
 def reader_for(path: Path) -> SceneReader:
     for reader in READERS:
         if reader.recognise(path):

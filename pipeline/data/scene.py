@@ -52,9 +52,14 @@ class Scene:
     point_colors: Tensor | None = None
     box: tuple[Tensor, Tensor] | None = None  # initialisation box when there are no points
     info: dict = field(default_factory=dict)
-    traits: SceneTraits = field(default_factory=SceneTraits)
+    traits: SceneTraits | None = None        # None: its format's (``readers.READERS``)
     # per split, [C] mask files (white = the object, kept; black = ignored) when the capture has them
     masks: dict[str, list[Path]] | None = None
+
+    def __post_init__(self) -> None:
+        if self.traits is None:
+            from pipeline.data.readers import traits_of  # the registry reads scenes: import when used
+            self.traits = traits_of(self.format)
 
     def split(self, name: str) -> Split:
         if name not in self.splits:
