@@ -4,6 +4,7 @@ job hash, and the example plugin's strategy by hand."""
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -39,8 +40,10 @@ def test_public_api_surface_is_unchanged():
 def installed(tmp_path_factory):
     """The example plugin installed by pip (a real distribution: dist-info with entry_points.txt)."""
     target = tmp_path_factory.mktemp("site")
+    source = tmp_path_factory.mktemp("src") / "farthest_view"  # pip builds in place: not in the checkout
+    shutil.copytree(EXAMPLE, source, ignore=shutil.ignore_patterns("build", "*.egg-info"))
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-                    "--target", str(target), str(EXAMPLE)], check=True, capture_output=True)
+                    "--target", str(target), str(source)], check=True, capture_output=True)
     return target
 
 
