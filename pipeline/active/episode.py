@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy
+from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy, scores_any_pose
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
@@ -128,7 +128,7 @@ class Episode:
         self.acquired = AcquiredViews(first_id=len(self.pool.cameras))  # views captured off the pool
         self.world, self.space = None, None
         if cfg.world != "dataset":
-            if not hasattr(self.strategy, "pose_scorer"):
+            if not scores_any_pose(self.strategy):
                 raise ValueError(f"world={cfg.world}: strategy {cfg.strategy!r} cannot score a pose off the pool "
                                  f"(a pose search needs a strategy that scores any camera: {', '.join(POSE_SCORING)})")
             self.world = make_world(scene, cfg)

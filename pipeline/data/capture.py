@@ -10,7 +10,8 @@
    are listed; fewer than half of the images registered is an error naming the ones that did not;
 3. the kept model undistorted to a PINHOLE camera (COLMAP's image undistorter) into
    ``OUT/images`` + ``OUT/sparse/0``; masks that come with the photos (``masks/`` beside them, named
-   like the photo or ``<stem>_mask.png``) are undistorted the same way into ``OUT/masks``;
+   like the photo, ``<stem>.png`` or ``<stem>_mask.png``: ``colmap.mask_path``) are undistorted the
+   same way into ``OUT/masks``;
 4. ``OUT/capture.json``: images, registered, points, mean reprojection error, seconds per stage,
    the photos that did not register and the sizes of the models that were left out.
 """
@@ -24,9 +25,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from pipeline.data.colmap import mask_path, undistort_masks
 from pipeline.data.images import DataError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -77,14 +78,6 @@ def photo_files(folder: Path) -> list[Path]:
     return files
 
 
-def mask_file(masks: Path, photo: Path) -> Path | None:
-    """A photo's mask in ``masks``: the same name, ``<stem>.png`` or ``<stem>_mask.png``."""
-    for name in (photo.name, f"{photo.stem}.png", f"{photo.stem}_mask.png"):
-        if (masks / name).is_file():
-            return masks / name
-    return None
-
-
 def resized_copy(src: Path, dst: Path, max_size: int, mode: str = "RGB") -> None:
     with Image.open(src) as im:
         im = im.convert(mode)
@@ -122,10 +115,10 @@ def prepare_inputs(source: Path, work: Path, max_size: int, frames: int, say: Pr
     count = 0
     for k, photo in enumerate(photos):
         resized_copy(photo, images_dir / photo.name, max_size)
-        mask = mask_file(masks_src, photo) if masks_src.is_dir() else None
-        if mask is not None:
+        mask = mask_path(masks_src, photo.name) if masks_src.is_dir() else None
+        if mask is not None:  # lossless, under the name undistort_masks looks for
             masks_dir.mkdir(exist_ok=True)
-            resized_copy(mask, masks_dir / photo.name, max_size, mode="L")
+            resized_copy(mask, masks_dir / f"{photo.stem}.png", max_size, mode="L")
             count += 1
         if (k + 1) % max(1, len(photos) // 4) == 0 or k + 1 == len(photos):
             say(f"inputs: {k + 1}/{len(photos)} photos copied (at most {max_size} px)")
@@ -187,7 +180,7 @@ def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, secon
 
 def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
     """The kept model and its images undistorted to PINHOLE in ``out`` (images/, sparse/0/);
-    masks through the same cameras into ``out/masks`` (binarised at 0.5)."""
+    masks through the same cameras into ``out/masks`` (``colmap.undistort_masks``)."""
     import pycolmap
     staging = work / "undistorted"
     pycolmap.undistort_images(staging, model_dir, work / "images")
@@ -195,18 +188,8 @@ def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
     shutil.copytree(staging / "sparse", out / "sparse" / "0", dirs_exist_ok=True)
     shutil.copytree(staging / "images", out / "images", dirs_exist_ok=True)
     if has_masks:
-        masks_staging = work / "undistorted_masks"
-        rgb = work / "masks_rgb"
-        rgb.mkdir()
-        for mask in (work / "masks").iterdir():  # the undistorter reads colour images
-            with Image.open(mask) as im:
-                im.convert("RGB").save(rgb / mask.name)
-        pycolmap.undistort_images(masks_staging, model_dir, rgb)
-        (out / "masks").mkdir(exist_ok=True)
-        for mask in (masks_staging / "images").iterdir():
-            with Image.open(mask) as im:
-                values = np.asarray(im.convert("L"))
-            Image.fromarray(((values >= 128) * 255).astype(np.uint8)).save((out / "masks" / mask.name).with_suffix(".png"))
+        undistort_masks(model_dir, work / "images", work / "masks", work / "mask_undistortion")
+        shutil.copytree(work / "mask_undistortion" / "masks", out / "masks", dirs_exist_ok=True)
 
 
 def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, frames: int = 100,

@@ -65,6 +65,17 @@ def _image_path(root: Path, rel: str, path: Path, index: int) -> Path:
     return image
 
 
+def frame_viewmats(frames: list[dict], path: Path) -> torch.Tensor:
+    """[C, 4, 4] float64 world->camera (OpenCV) of the frames' camera-to-world ``transform_matrix``
+    (OpenGL axes; 4x4, or 3x4 without the last row)."""
+    c2w = torch.tensor(np.array([f["transform_matrix"] for f in frames], dtype=np.float64))
+    if c2w.shape[1:] not in ((4, 4), (3, 4)):
+        raise DataError(f"{path}: transform_matrix must be 4x4 (or 3x4), got {tuple(c2w.shape[1:])}")
+    if c2w.shape[1] == 3:
+        c2w = torch.cat([c2w, torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(len(c2w), 1, 4)], 1)
+    return c2w_opengl_to_viewmat(c2w)
+
+
 def read_nerfstudio(root: str | Path, width: int | None = None, masks: bool = False, llff_hold: int = 8,
                     background=(0.0, 0.0, 0.0)) -> Scene:
     root = Path(root)
@@ -95,12 +106,7 @@ def read_nerfstudio(root: str | Path, width: int | None = None, masks: bool = Fa
     sx, sy = w / model_w, h / model_h
     ks = torch.tensor([[[c["fl_x"] * sx, 0, c["cx"] * sx], [0, c["fl_y"] * sy, c["cy"] * sy], [0, 0, 1]]
                        for c in cams], dtype=torch.float32)
-    c2w = torch.tensor(np.array([f["transform_matrix"] for f in frames], dtype=np.float64))
-    if c2w.shape[1:] not in ((4, 4), (3, 4)):
-        raise DataError(f"{path}: transform_matrix must be 4x4 (or 3x4), got {tuple(c2w.shape[1:])}")
-    if c2w.shape[1] == 3:
-        c2w = torch.cat([c2w, torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(len(c2w), 1, 4)], 1)
-    cameras = Cameras(c2w_opengl_to_viewmat(c2w).float(), ks, w, h)
+    cameras = Cameras(frame_viewmats(frames, path).float(), ks, w, h)
     bg = torch.tensor(background, dtype=torch.float32)
     names = [f["file_path"] for f in frames]
     store = ImageStore(images, (w, h), bg, source_size=(file_w, file_h))
@@ -119,10 +125,7 @@ def colmap_text_model(frames: list[dict], cams: list[dict], names: list[str], sp
     OpenCV axes, no points), for COLMAP's undistorter."""
     from scipy.spatial.transform import Rotation
     sparse.mkdir(parents=True)
-    c2w = torch.tensor(np.array([f["transform_matrix"] for f in frames], dtype=np.float64))
-    if c2w.shape[1] == 3:
-        c2w = torch.cat([c2w, torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(len(c2w), 1, 4)], 1)
-    viewmats = c2w_opengl_to_viewmat(c2w).numpy()
+    viewmats = frame_viewmats(frames, sparse).numpy()
     camera_lines, image_lines = [], []
     for i, (cam, vm, name) in enumerate(zip(cams, viewmats, names), start=1):
         params = [cam[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2")]

@@ -32,6 +32,7 @@ def schema(name: str) -> dict:
     return json.loads((HERE / f"{name}.schema.json").read_text())
 
 
+@lru_cache(maxsize=None)
 def _validator(name: str):
     import jsonschema
     from referencing import Registry, Resource
