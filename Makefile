@@ -4,16 +4,28 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	# The CPU build of torch lies on local disk; install the pin first so nothing pulls a CUDA build.
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[dev]'
+	# Every other package at its locked version (the same on every machine and cluster node), then
+	# gopre itself without resolving anything again.
+	$(BIN)/pip install -q -r requirements.lock
+	$(BIN)/pip install -q --no-deps -e .
 	touch $(STAMP)
 
-.PHONY: env demo test test-fast e2e latex mutate bench
+.PHONY: env lock demo test test-fast e2e latex mutate bench postgres
 env: $(STAMP)
+
+# Re-lock after changing pyproject.toml's dependencies: resolve them in a fresh venv, freeze it.
+lock:
+	rm -rf .lock-venv && $(PY) -m venv .lock-venv
+	.lock-venv/bin/pip install -q --upgrade pip && .lock-venv/bin/pip install -q torch==2.13.0
+	.lock-venv/bin/pip install -q -e '.[dev]'
+	{ sed -n '/^#/p' requirements.lock; .lock-venv/bin/pip freeze --exclude-editable | \
+		sed 's/^torch==\([0-9.]*\)+.*/torch==\1/'; } > requirements.lock.new && mv requirements.lock.new requirements.lock
+	rm -rf .lock-venv
 
 # The demo sweep (gopre, fisherrf, random, coverage on the generated scene) on local Ray with
 # MLflow tracking, then its report in reports/demo/.
@@ -56,6 +68,13 @@ mutate: $(STAMP)
 		GOPRE_DISABLE_COMPILED=1 \
 		$(BIN)/mutmut run --max-children 2 $(MUTANTS)
 	$(BIN)/python tools/mutation_summary.py
+
+# PostgreSQL for the tracking-server tests (tests/test_tracking_server.py): Debian's postgresql
+# package, installed when initdb is missing (`make test` runs those tests whenever it is present).
+postgres:
+	command -v initdb >/dev/null || ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { \
+		$$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get update -qq && \
+		$$( [ "$$(id -u)" = 0 ] || echo sudo ) apt-get install -y -qq --no-install-recommends postgresql; }
 
 bench: $(STAMP)
 	$(BIN)/python -m pipeline.bench render

@@ -84,7 +84,7 @@ def write_benchmark(preset: str, overrides: list[str], out: Path) -> dict:
     from pipeline.experiment.build import ConfigError, expand_jobs
     from pipeline.experiment.provenance import code_version
     from pipeline.experiment.result_document import benchmark_document, benchmark_entries
-    from pipeline.experiment.executor import scene_key
+    from pipeline.experiment.executors import scene_key
     from pipeline.experiment.sweep import prepare_scenes
     from pipeline.interchange.documents import validate
     register_resolvers()

@@ -154,7 +154,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
         raise ConfigError(f"splat.{err}") from None
     plugins = strategy_plugins(methods)
     jobs = []
-    output_dir = Path(str(cfg.output_dir))
+    output_dir = Path(str(cfg.output_dir)).absolute()  # job folders: the same wherever the job runs
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
     for dname, dset in datasets.items():
         missing = sorted({"format", "root", "scenes"} - set(dset or {}))
@@ -168,7 +168,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
             job = {"sweep": str(cfg.name), "results_revision": RESULTS_REVISION,
                    "kind": job_cfg["kind"], "dataset": dname,
                    "format": dset["format"], "scene": scene,
-                   "scene_path": str(Path(str(dset["root"])) / scene), "generate": dset.get("generate"),
+                   "scene_path": str((Path(str(dset["root"])) / scene).absolute()), "generate": dset.get("generate"),
                    "method": mname, "strategy": method["strategy"],
                    "options": copy.deepcopy(method.get("options") or {}),
                    "protocol": {**protocol, **(method.get("protocol") or {})},

@@ -22,7 +22,9 @@ class JobOutcome:
     """status FINISHED or FAILED; attempts made; errors: the traceback of each failed attempt;
     result: the job's result dict (``EpisodeResult.to_dict()`` or the uncertainty experiment's;
     None when FAILED); artifacts: file name -> bytes for the tracker; seconds: the last
-    attempt's wall time (None when not measured, e.g. a FAILED or a resumed outcome)."""
+    attempt's wall time (None when not measured, e.g. a FAILED or a resumed outcome); worker:
+    where and under what the job ran (``executors.worker.run_here``: host, node, pid, code
+    version, packages, CPU, starts, first_started, ended; empty when not run by an executor)."""
 
     status: str
     attempts: int = 1
@@ -30,6 +32,7 @@ class JobOutcome:
     result: dict | None = None
     artifacts: dict[str, bytes] = field(default_factory=dict)
     seconds: float | None = None
+    worker: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.status not in (FINISHED, FAILED):

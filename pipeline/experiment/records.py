@@ -101,8 +101,21 @@ def uncertainty_rows(base: dict, result: UncertaintyResult, seconds: float) -> l
     return rows
 
 
+def worker_columns(outcome: JobOutcome) -> dict:
+    """Where and under what the job ran (``executors.worker``): host, node, the worker's code
+    version and packages, CPU model, how many times it started (retries on another node,
+    requeues, relaunches) and the seconds from its first start to its end."""
+    w = outcome.worker
+    if not w:
+        return {}
+    return {"host": w.get("host"), "node": w.get("node"), "worker_code_version": w.get("code_version"),
+            "packages": w.get("packages"), "packages_locked": w.get("locked"), "cpu": w.get("cpu"),
+            "starts": w.get("starts"),
+            "elapsed_seconds": round(w["ended"] - w["first_started"], 2) if "ended" in w else None}
+
+
 def job_rows(job: Job, outcome: JobOutcome, run_id: str | None) -> list[dict]:
-    base = identity(job, outcome, run_id)
+    base = {**identity(job, outcome, run_id), **worker_columns(outcome)}
     if not outcome.finished:
         return [{**base, "kind": "final", "error": outcome.traceback[-2000:],
                  "attempts": outcome.attempts}]

@@ -20,7 +20,7 @@ from pipeline.data.scene import Scene
 from pipeline.data.synthetic import at_fraction, generate
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.console import console, sweep_log
-from pipeline.experiment.executor import make_executor, scene_key
+from pipeline.experiment.executors import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.lock import SweepLock, SweepLocked
@@ -281,7 +281,7 @@ class SweepRun:
                  f"(skipped), {len(self.todo)} to run; output in {self.output_dir}")
         warn_stale(self.name, self.records, {j.config_hash for j in self.jobs} & done, self.output_dir)
         self.folder.write_jobs(self.jobs)
-        self.executor = make_executor(self.resolved["executor"])
+        self.executor = make_executor(self.resolved["executor"], self.output_dir)
         return scenes
 
     def on_done(self, job: Job, outcome: JobOutcome) -> None:

@@ -37,6 +37,16 @@ class JobFolder:
         return self.path / "log.txt"
 
     @property
+    def starts_file(self) -> Path:
+        """One JSON line per start of the job (host, node, pid, time): retries, requeues, relaunches."""
+        return self.path / "starts.jsonl"
+
+    @property
+    def progress_file(self) -> Path:
+        """Round messages of a job run by a batch scheduler (one JSON line each), tailed by the driver."""
+        return self.path / "progress.jsonl"
+
+    @property
     def checkpoint_dir(self) -> Path:
         return self.path / "checkpoint"
 

@@ -1,0 +1,185 @@
+"""``executor=slurm``: one SLURM job array per sweep, through submitit (what Hydra's submitit
+launcher uses), with ``executor.cluster=local`` running the same code without SLURM (submitit's
+local executor: every job a process on this machine; for tests and dry runs).
+
+Each array task runs ``worker.run_here`` for one job (``SlurmJobRunner``), reading the scene from
+its path (the data, ``output_dir`` and the venv must be on a filesystem the compute nodes share).
+On preemption or timeout SLURM signals the task, submitit requeues it (``max_requeues`` times) and
+the job resumes from its last round checkpoint in its folder. Round messages go to the job folder's
+``progress.jsonl``, which the driver tails while it polls the array; submitit's own logs and
+pickles are under ``<output_dir>/slurm/``.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.data.scene import Scene
+from pipeline.experiment.build import ConfigError
+from pipeline.experiment.executors.base import OnDone, OnRound
+from pipeline.experiment.executors.worker import DriverIdentity, run_here
+from pipeline.experiment.interrupt import SweepInterrupted, critical
+from pipeline.experiment.layout import JobFolder
+from pipeline.experiment.outcome import JobOutcome, RoundMessage
+from pipeline.experiment.spec import Job
+
+POLL_SECONDS = 2.0
+
+
+def _checkpointable():
+    try:
+        from submitit.helpers import Checkpointable
+    except ImportError:
+        return object
+    return Checkpointable
+
+
+def message_line(message: RoundMessage) -> str:
+    data = message.to_dict()
+    data["images"] = {k: base64.b64encode(v).decode() for k, v in data["images"].items()}
+    return json.dumps(data)
+
+
+def message_of(line: str) -> RoundMessage:
+    data = json.loads(line)
+    data["images"] = {k: base64.b64decode(v) for k, v in data.get("images", {}).items()}
+    return RoundMessage.from_dict(data)
+
+
+class SlurmJobRunner(_checkpointable()):
+    """One array task: run the job here; requeued as is (submitit's ``Checkpointable``: the job's
+    own round checkpoints carry its state)."""
+
+    def __init__(self, expected: dict):
+        self.expected = expected
+
+    def __call__(self, plain_job: dict) -> dict:
+        job = Job.from_dict(plain_job)
+        progress = JobFolder(Path(job.execution.job_dir)).progress_file
+
+        def report(message: RoundMessage) -> None:
+            progress.parent.mkdir(parents=True, exist_ok=True)
+            with open(progress, "a") as f:
+                f.write(message_line(message) + "\n")
+        return run_here(job, None, report, DriverIdentity(**self.expected)).to_dict()
+
+
+@dataclass
+class ProgressTail:
+    """The lines a job's ``progress.jsonl`` gained since the last look (complete lines only)."""
+
+    path: Path
+    offset: int = 0
+    partial: str = field(default="")
+
+    @classmethod
+    def at_end(cls, path: Path) -> "ProgressTail":
+        return cls(path, path.stat().st_size if path.exists() else 0)
+
+    def new_lines(self) -> list[str]:
+        if not self.path.exists():
+            return []
+        with open(self.path) as f:
+            f.seek(self.offset)
+            text = f.read()
+            self.offset = f.tell()
+        text, self.partial = self.partial + text, ""
+        lines = text.split("\n")
+        self.partial = lines.pop()  # "" after a complete line
+        return [ln for ln in lines if ln]
+
+
+class SlurmExecutor:
+    def __init__(self, output_dir: Path, cluster: str | None = None, partition: str | None = None,
+                 account: str | None = None, timeout_min: int = 240, array_parallelism: int = 64,
+                 max_requeues: int = 3, gpus_per_job: int = 0, mem_gb: float | None = None,
+                 setup: list[str] | None = None):
+        self.output_dir = Path(output_dir).resolve()
+        self.cluster, self.partition, self.account = cluster, partition, account
+        self.timeout_min, self.array_parallelism = timeout_min, array_parallelism
+        self.max_requeues, self.gpus_per_job, self.mem_gb = max_requeues, gpus_per_job, mem_gb
+        self.setup = list(setup or [])
+        self.slots = 1
+        self.running: list[Job] = []
+        self.submitted: dict[str, object] = {}  # config hash -> submitit job (tests interrupt one)
+
+    @classmethod
+    def from_config(cls, cfg: dict, output_dir: Path) -> "SlurmExecutor":
+        keys = ("cluster", "partition", "account", "timeout_min", "array_parallelism", "max_requeues",
+                "gpus_per_job", "mem_gb", "setup")
+        return cls(output_dir, **{k: cfg[k] for k in keys if cfg.get(k) is not None})
+
+    def _executor(self, jobs: list[Job]):
+        try:
+            import submitit
+        except ImportError:
+            raise ConfigError("executor=slurm needs submitit: pip install 'gopre[cluster]'") from None
+        ex = submitit.AutoExecutor(folder=self.output_dir / "slurm" / "%j", cluster=self.cluster,
+                                   slurm_max_num_timeout=self.max_requeues)
+        if ex.cluster == "debug":
+            raise ConfigError("executor.cluster: no SLURM here (sbatch not found); executor.cluster=local "
+                              "runs the array on this machine")
+        threads = max(j.execution.threads for j in jobs)
+        params = {"timeout_min": self.timeout_min, "cpus_per_task": threads, "name": jobs[0].sweep,
+                  "slurm_array_parallelism": self.array_parallelism}
+        if self.gpus_per_job:
+            params["gpus_per_node"] = self.gpus_per_job
+        if self.mem_gb:
+            params["mem_gb"] = self.mem_gb
+        if self.partition:
+            params["slurm_partition"] = self.partition
+        if self.account:
+            params["slurm_account"] = self.account
+        if self.setup:
+            params["slurm_setup"] = self.setup
+        ex.update_parameters(**params)
+        self.slots = len(jobs) if ex.cluster == "local" else min(len(jobs), self.array_parallelism)
+        return ex
+
+    def map(self, jobs: list[Job], scenes: dict[str, Scene], on_done: OnDone,
+            on_round: OnRound | None = None) -> None:
+        if not jobs:
+            return
+        ex = self._executor(jobs)
+        tails = {j.config_hash: ProgressTail.at_end(JobFolder(Path(j.execution.job_dir)).progress_file)
+                 for j in jobs}
+        runner = SlurmJobRunner(DriverIdentity.here().to_dict())
+        with critical():
+            array = ex.map_array(runner, [j.to_dict() for j in jobs])  # one job array per sweep
+        pending = {j.config_hash: (j, s) for j, s in zip(jobs, array)}
+        self.submitted = {h: s for h, (_, s) in pending.items()}
+        try:
+            while pending:
+                for config_hash, (job, submitted) in list(pending.items()):
+                    if on_round is not None:
+                        for line in tails[config_hash].new_lines():
+                            on_round(job, message_of(line))
+                    if not submitted.done():
+                        continue
+                    del pending[config_hash]
+                    on_done(job, self._outcome(submitted))
+                if pending:
+                    time.sleep(POLL_SECONDS)
+        except SweepInterrupted:
+            self.running = []
+            for job, submitted in pending.values():
+                try:
+                    submitted.cancel(check=False)
+                except Exception:  # already ended
+                    pass
+                if Path(job.execution.job_dir).exists():
+                    self.running.append(job)
+            raise
+
+    def _outcome(self, submitted) -> JobOutcome:
+        try:
+            return JobOutcome.from_dict(submitted.result())
+        except Exception:  # the task died (killed, out of memory, out of requeues): its logs say why
+            paths = getattr(submitted, "paths", None)
+            where = f"\nsubmitit logs: {paths.stdout} {paths.stderr}" if paths is not None else ""
+            return JobOutcome.failed(1 + self.max_requeues, [traceback.format_exc() + where])

@@ -1,0 +1,218 @@
+"""The executors' boundary (local, Ray, SLURM through submitit) and what a worker records: each
+job runs under the driver's code and packages or is refused, its state lives under output_dir
+wherever it runs, and its CPU reservation holds."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.executors import EXECUTOR_KINDS, Executor, make_executor
+from pipeline.experiment.executors.worker import DriverIdentity, read_starts, run_here
+from pipeline.experiment.layout import JobFolder
+from pipeline.experiment.records import RecordsFile
+from tests.test_experiment import TINY, composed
+
+BIN = Path(sys.executable).parent
+
+
+def test_every_executor_kind_implements_the_one_boundary(tmp_path):
+    for kind in EXECUTOR_KINDS:
+        executor = make_executor({"kind": kind}, tmp_path)
+        assert isinstance(executor, Executor), kind  # runtime-checkable protocol: map, slots, running
+        assert callable(executor.map) and isinstance(executor.running, list)
+    with pytest.raises(ValueError, match="local, ray, slurm"):
+        make_executor({"kind": "kubernetes"}, tmp_path)
+
+
+def test_job_folders_and_scene_paths_are_absolute_whatever_the_worker_cwd(tmp_path, monkeypatch):
+    """A Ray worker started from another folder wrote job state under its own cwd (issue 45)."""
+    monkeypatch.chdir(tmp_path)
+    jobs = expand_jobs(composed(["experiment=debug", *TINY, "output_dir=relative/out"]))
+    for job in jobs:
+        assert Path(job.execution.job_dir).is_absolute()
+        assert Path(job.execution.job_dir).is_relative_to(tmp_path / "relative" / "out")
+        assert Path(job.scene_path).is_absolute()
+
+
+def test_a_worker_under_other_code_or_packages_is_refused_and_not_retried(tmp_path):
+    job = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", "job.retries=3",
+                                f"output_dir={tmp_path}"]))[0]
+    here = DriverIdentity.here()
+    for expected, word in ((DriverIdentity("0123456789ab", here.packages), "code"),
+                           (DriverIdentity(here.code_version, "feedfacecafe"), "packages")):
+        outcome = run_here(job, None, None, expected)
+        assert not outcome.finished and outcome.attempts == 1  # deterministic: no retry
+        assert "refused" in outcome.traceback and word in outcome.traceback
+        assert expected.code_version in outcome.traceback or expected.packages in outcome.traceback
+    starts = read_starts(Path(job.execution.job_dir))
+    assert len(starts) == 2 and all(s["pid"] == os.getpid() for s in starts)
+
+
+@pytest.mark.slow
+def test_a_local_job_records_where_and_under_what_it_ran(tmp_path):
+    from pipeline.experiment.provenance import code_version, environment
+    from pipeline.experiment.sweep import run_sweep
+    out = tmp_path / "o"
+    run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local", "tracking=none",
+                        f"output_dir={out}"]))
+    final = RecordsFile(out).frame.query("kind == 'final'").iloc[0]
+    assert final["node"] == "local" and final["host"] == os.uname().nodename
+    assert final["worker_code_version"] == code_version() and final["packages"] == environment().packages
+    assert final["starts"] == 1 and final["elapsed_seconds"] >= final["wall_seconds"] > 0
+
+
+def test_the_environment_identity_follows_the_installed_packages(monkeypatch):
+    from pipeline.experiment import provenance
+    pins = provenance.installed_pins()
+    assert "torch" in pins and "gopre" not in pins and "pip" not in pins
+    lock = provenance.read_lock()
+    assert provenance.lock_differences(pins, lock) == [], "this venv is not requirements.lock: run make env"
+    assert provenance.environment().locked is True
+    changed = {**pins, "numpy": "0.0.1"}
+    assert provenance.lock_differences(changed, lock) == [f"numpy: locked {lock['numpy']}, installed 0.0.1"]
+    assert provenance.lock_differences({**pins, "torch": lock["torch"] + "+cu124"}, lock) == []
+    extra = {**pins, "left-pad": "1.0"}
+    assert provenance.lock_differences(extra, lock) == ["left-pad: installed 1.0, not in the lock"]
+    before = provenance.environment().packages
+    monkeypatch.setattr(provenance, "installed_pins", lambda: changed)
+    provenance.environment.cache_clear()
+    try:
+        assert provenance.environment().locked is False
+        assert provenance.environment().packages != before  # another numpy: another identity
+    finally:
+        provenance.environment.cache_clear()
+
+
+def test_the_lock_pins_every_declared_dependency_and_make_env_installs_it():
+    import tomllib
+
+    from pipeline.experiment.provenance import PACKAGE_ROOT, read_lock
+    lock = read_lock()
+    project = tomllib.loads((PACKAGE_ROOT / "pyproject.toml").read_text())["project"]
+    declared = list(project["dependencies"])
+    for extra in ("dev", "cluster", "server"):
+        declared += [d for d in project["optional-dependencies"][extra] if not d.startswith("gopre[")]
+    import re
+    for requirement in declared:
+        name = re.split(r"[\[<>=!~ ;]", requirement, maxsplit=1)[0].lower().replace("_", "-")
+        assert name in lock, f"{name} ({requirement}) is not in requirements.lock: make lock"
+    makefile = (PACKAGE_ROOT / "Makefile").read_text()
+    assert "pip install -q -r requirements.lock" in makefile and "--no-deps -e ." in makefile
+    dockerfile = (PACKAGE_ROOT / "docker" / "Dockerfile").read_text()
+    assert "requirements.lock" in dockerfile
+
+
+# --- Ray ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def ray2():
+    ray = pytest.importorskip("ray")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_round_progress_survives_a_lost_inbox_and_posting_never_blocks(ray2, capsys):
+    from pipeline.experiment.executors.ray_cluster import RoundChannel
+    heard = []
+    channel = RoundChannel(ray2, [], lambda job, message: heard.append(message))
+    assert ray2.get(channel.inbox.node.remote()) == ray2.get_runtime_context().get_node_id()  # on the driver's node
+
+    @ray2.remote(num_cpus=0)
+    def post(inbox):
+        inbox.post.remote("h", {"x": 1})  # what a task does: no ray.get
+        return "posted"
+
+    ray2.kill(channel.inbox)  # the inbox is gone (its node lost, say)
+    assert ray2.get(post.remote(channel.inbox), timeout=60) == "posted"  # the task is not hurt
+    channel.drain()
+    channel.drain()  # said once, then quiet
+    warnings = [ln for ln in capsys.readouterr().out.splitlines() if "round progress" in ln]
+    assert len(warnings) == 1 and channel.lost is not None and heard == []
+    channel.close()
+
+
+def test_a_node_that_cannot_read_the_data_or_runs_other_code_is_named_before_any_job(ray2, tmp_path):
+    from pipeline.experiment.executors.ray_cluster import RayExecutor
+    present = tmp_path / "a.png"
+    present.write_bytes(b"x")
+    scene = SimpleNamespace(splits={"train": SimpleNamespace(images=SimpleNamespace(paths=[present]))})
+    executor = RayExecutor(output_dir=tmp_path / "out")
+    executor.check_nodes(ray2, {"s": scene}, DriverIdentity.here())  # all well: no error
+    missing = SimpleNamespace(splits={"test": SimpleNamespace(images=SimpleNamespace(
+        paths=[present, tmp_path / "gone.png"]))})
+    with pytest.raises(ConfigError) as err:
+        executor.check_nodes(ray2, {"s": scene, "t": missing}, DriverIdentity("0123456789ab", "feedfacecafe"))
+    text = str(err.value)
+    node = ray2.get_runtime_context().get_node_id()[:12]
+    assert f"node {node}" in text and "cannot read 1 scene file(s), e.g. " + str(tmp_path / "gone.png") in text
+    assert "code " in text and "0123456789ab" in text and "feedfacecafe" in text
+    assert "no job was started" in text
+
+
+def test_node_problems_name_a_node_without_the_shared_output_dir():
+    from pipeline.experiment.executors.ray_cluster import node_problems
+    report = {"node": "abcdef0123456789", "host": "w1", "missing": [], "missing_count": 0, "shared": False,
+              "identity": None}
+    (line,) = node_problems([report], Path("/shared/out"))
+    assert line.startswith("node abcdef012345 (w1) does not see output_dir /shared/out")
+    assert node_problems([{**report, "shared": True}], Path("/x")) == []
+
+
+def test_a_cluster_that_refuses_the_driver_is_one_line_naming_the_token(monkeypatch):
+    import socket
+
+    from pipeline.experiment.executors.ray_cluster import connection_problem
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    text = connection_problem(f"127.0.0.1:{port}", ConnectionError("Failed to connect"))
+    assert "RAY_AUTH_MODE=token" in text and "auth_token" in text and "\n" not in text
+    listener.close()
+    text = connection_problem(f"127.0.0.1:{port}", ConnectionError("Failed to connect"))
+    assert "no Ray cluster answers" in text
+
+
+SLOW_INBOX = """
+import sys, time
+from pipeline.experiment.executors import ray_cluster
+
+class SlowInbox(ray_cluster.RoundInbox):  # defined here, so Ray ships it by value to its actor
+    def post(self, config_hash, message):
+        time.sleep(3)  # a busy driver node: a task that waited for this would block 3 s per round
+        super().post(config_hash, message)
+
+ray_cluster.RoundInbox = SlowInbox
+from pipeline.cli.run import main
+main()  # Hydra reads sys.argv
+"""
+
+
+@pytest.mark.slow
+def test_a_one_cpu_ray_runs_one_job_at_a_time(tmp_path):
+    """A round report was a blocking ray.get inside the task: Ray lent the blocked task's CPU to
+    another, and a 1-CPU node ran two jobs at once (issue 45). Here the inbox answers slowly, so a
+    task that waits for it blocks for seconds."""
+    out = tmp_path / "o"
+    script = tmp_path / "slow_inbox.py"
+    script.write_text(SLOW_INBOX)
+    proc = subprocess.run([sys.executable, str(script), "experiment=debug", *TINY, "protocol.budget=5",
+                           "method=[random,coverage]", "executor=ray", "executor.num_cpus=1", "job.threads=1",
+                           "tracking=none", f"output_dir={out}"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    finals = RecordsFile(out).frame.query("kind == 'final'")
+    spans = []
+    for _, row in finals.iterrows():
+        (start,) = read_starts(out / "jobs" / row["config_hash"])
+        spans.append((start["started"], start["started"] + row["elapsed_seconds"]))
+        assert row["node"].startswith("ray:") and row["starts"] == 1
+    (a0, a1), (b0, b1) = sorted(spans)
+    assert a1 <= b0 + 0.5, f"two jobs ran at once on one CPU for {a1 - b0:.1f} s"
