@@ -216,3 +216,98 @@ def test_a_one_cpu_ray_runs_one_job_at_a_time(tmp_path):
         assert row["node"].startswith("ray:") and row["starts"] == 1
     (a0, a1), (b0, b1) = sorted(spans)
     assert a1 <= b0 + 0.5, f"two jobs ran at once on one CPU for {a1 - b0:.1f} s"
+
+
+# --- SLURM through submitit (its local executor: the same array code, no SLURM) ----------------
+
+@pytest.mark.slow
+def test_a_slurm_array_sweep_equals_a_local_one(tmp_path):
+    pytest.importorskip("submitit")
+    from pipeline.experiment.sweep import run_sweep
+    from tests.test_experiment import metrics_of
+    common = ["experiment=debug", *TINY, "method=[random,coverage]", "tracking=none"]
+    slurm = run_sweep(composed([*common, "executor=slurm", "executor.cluster=local",
+                                f"output_dir={tmp_path / 'slurm'}"]))
+    assert slurm.finished == 2 and slurm.failed == 0
+    run_sweep(composed([*common, "executor=local", f"output_dir={tmp_path / 'local'}"]))
+    array, here = RecordsFile(tmp_path / "slurm").frame, RecordsFile(tmp_path / "local").frame
+    assert metrics_of(array) == metrics_of(here)
+    assert set(array.query("kind == 'final'")["node"].str.split(":").str[0]) == {"submitit-local"}
+    assert list((tmp_path / "slurm" / "slurm").iterdir()), "submitit's logs live under output_dir/slurm"
+    again = run_sweep(composed([*common, "executor=slurm", "executor.cluster=local",
+                                f"output_dir={tmp_path / 'slurm'}"]))
+    assert again.skipped == 2 and again.finished == 0
+
+
+@pytest.mark.slow
+def test_a_preempted_array_task_is_requeued_and_resumes_from_its_checkpoint(tmp_path):
+    """SLURM signals a task it preempts (or one near its time limit); submitit requeues it and the
+    job goes on from its last round checkpoint. Here the task gets SLURM's signal (SIGUSR2) once
+    the driver has heard its first round."""
+    pytest.importorskip("submitit")
+    import signal
+
+    from pipeline.experiment.executors.slurm import SlurmExecutor
+    from pipeline.experiment.sweep import validate_sweep
+    overrides = ["experiment=debug", *TINY, "protocol.budget=6", "method=[random]", "splat.iterations=2400"]
+    job = expand_jobs(composed([*overrides, f"output_dir={tmp_path / 'array'}"]))[0]
+    validate_sweep([job])  # generates the scene the array task reads from its path
+    executor = SlurmExecutor(tmp_path / "array", cluster="local", max_requeues=2, timeout_min=10)
+    heard, outcomes, preempted = [], [], []
+
+    def on_round(j, message):
+        heard.append(message.record.round)
+        if not preempted:
+            (start,) = read_starts(Path(j.execution.job_dir))
+            os.kill(start["pid"], signal.SIGUSR2)
+            preempted.append(message.record.round)
+    executor.map([job], {}, lambda j, outcome: outcomes.append(outcome), on_round)
+    (outcome,) = outcomes
+    assert outcome.finished, outcome.traceback
+    assert outcome.worker["starts"] == 2  # preempted once, then requeued
+    log = (Path(job.execution.job_dir) / "log.txt").read_text()
+    assert "resuming from the checkpoint after" in log
+    assert "failed" not in log  # the requeue signal ends the process, even inside a compiled kernel
+    rounds = [r.round for r in outcome.episode.rounds]
+    assert rounds == list(range(len(rounds))) and sorted(set(heard)) == rounds
+    local = run_here(expand_jobs(composed([*overrides, f"output_dir={tmp_path / 'here'}"]))[0])
+    assert outcome.final.psnr == local.final.psnr and outcome.episode.selected == local.episode.selected
+
+
+def test_the_sbatch_settings_are_ones_submitit_accepts(tmp_path):
+    submitit = pytest.importorskip("submitit")
+    from pipeline.experiment.executors.slurm import SlurmExecutor
+    jobs = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", "job.threads=4",
+                                 f"output_dir={tmp_path}"]))
+    executor = SlurmExecutor.from_config({"kind": "slurm", "partition": "cpu", "account": "lab", "timeout_min": 90,
+                                          "array_parallelism": 8, "max_requeues": 2, "gpus_per_job": 1,
+                                          "mem_gb": 32, "setup": ["module load cuda"], "signal_delay_s": 120},
+                                         tmp_path)
+    params = executor._slurm_parameters(jobs)
+    assert params["cpus_per_task"] == 4 and params["slurm_partition"] == "cpu" and params["gpus_per_node"] == 1
+    sbatch = submitit.AutoExecutor(folder=tmp_path / "s", cluster="slurm", slurm_max_num_timeout=2)
+    sbatch.update_parameters(**params)  # submitit refuses an unknown or mistyped setting
+    assert sbatch._executor.parameters["partition"] == "cpu"
+    assert sbatch._executor.parameters["signal_delay_s"] == 120
+    assert sbatch._executor.parameters["setup"] == ["module load cuda"]
+
+
+def test_an_exit_inside_a_compiled_kernel_ends_the_job_instead_of_a_retry(tmp_path, monkeypatch):
+    """A signal handler's SystemExit raised inside numba code arrives as a SystemError caused by it."""
+    from pipeline.experiment import job as job_module
+    job = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", "job.retries=2",
+                                f"output_dir={tmp_path}"]))[0]
+
+    def kernel_interrupted(*args, **kwargs):
+        try:
+            raise SystemExit(144)  # what submitit's handler does to requeue
+        except SystemExit as exit_request:
+            raise SystemError("CPUDispatcher(<composite_forward>) returned a result with an exception set") \
+                from exit_request
+    monkeypatch.setattr(job_module, "run_job", kernel_interrupted)
+    with pytest.raises(SystemExit) as stopped:
+        job_module.run_with_retries(job)
+    assert stopped.value.code == 144
+    monkeypatch.setattr(job_module, "run_job", lambda *a, **k: 1 / 0)  # an application error: retried
+    outcome = job_module.run_with_retries(job)
+    assert not outcome.finished and outcome.attempts == 3

@@ -163,9 +163,24 @@ def run_job(job: Job, scene: Scene | None = None, report: Report | None = None) 
     return outcome
 
 
+def stop_request(err: BaseException) -> BaseException | None:
+    """The exit or stop request behind an error, if any: a signal handler that raises SystemExit
+    (submitit's requeue) or a stop (Ctrl-C) while a compiled kernel runs surfaces as a SystemError
+    whose cause chain holds it. Such an error is not the job's: it must end the process."""
+    seen, hops = err, 0
+    while seen is not None and hops < 50:
+        if not isinstance(seen, Exception):  # SystemExit, KeyboardInterrupt, SweepInterrupted
+            return seen
+        if type(seen).__name__ == "UncompletedJobError":  # submitit: out of requeues, the task must end
+            return seen
+        seen, hops = seen.__cause__ or seen.__context__, hops + 1
+    return None
+
+
 def run_with_retries(job: Job, scene: Scene | None = None, report: Report | None = None) -> JobOutcome:
     """``run_job`` with ``execution.retries`` re-runs after an exception; the outcome says
-    FINISHED, or FAILED with the last traceback. Never raises for an application error."""
+    FINISHED, or FAILED with the last traceback. Never raises for an application error; an exit or
+    stop request (``stop_request``) is raised, not retried."""
     attempts = 1 + max(0, int(job.execution.retries))
     errors = []
     for attempt in range(1, attempts + 1):
@@ -173,7 +188,10 @@ def run_with_retries(job: Job, scene: Scene | None = None, report: Report | None
             outcome = run_job(job, scene, report)
             return JobOutcome(FINISHED, attempt, errors, outcome["result"], outcome["artifacts"],
                               outcome["seconds"])
-        except Exception:
+        except Exception as err:
+            stop = stop_request(err)
+            if stop is not None:
+                raise stop from None
             errors.append(traceback.format_exc())
             folder = Path(job.execution.job_dir)
             folder.mkdir(parents=True, exist_ok=True)

@@ -98,12 +98,13 @@ class SlurmExecutor:
     def __init__(self, output_dir: Path, cluster: str | None = None, partition: str | None = None,
                  account: str | None = None, timeout_min: int = 240, array_parallelism: int = 64,
                  max_requeues: int = 3, gpus_per_job: int = 0, mem_gb: float | None = None,
-                 setup: list[str] | None = None):
+                 setup: list[str] | None = None, signal_delay_s: int | None = None):
         self.output_dir = Path(output_dir).resolve()
         self.cluster, self.partition, self.account = cluster, partition, account
         self.timeout_min, self.array_parallelism = timeout_min, array_parallelism
         self.max_requeues, self.gpus_per_job, self.mem_gb = max_requeues, gpus_per_job, mem_gb
         self.setup = list(setup or [])
+        self.signal_delay_s = signal_delay_s  # how long before the time limit the task is told to requeue
         self.slots = 1
         self.running: list[Job] = []
         self.submitted: dict[str, object] = {}  # config hash -> submitit job (tests interrupt one)
@@ -111,7 +112,7 @@ class SlurmExecutor:
     @classmethod
     def from_config(cls, cfg: dict, output_dir: Path) -> "SlurmExecutor":
         keys = ("cluster", "partition", "account", "timeout_min", "array_parallelism", "max_requeues",
-                "gpus_per_job", "mem_gb", "setup")
+                "gpus_per_job", "mem_gb", "setup", "signal_delay_s")
         return cls(output_dir, **{k: cfg[k] for k in keys if cfg.get(k) is not None})
 
     def _executor(self, jobs: list[Job]):
@@ -119,27 +120,31 @@ class SlurmExecutor:
             import submitit
         except ImportError:
             raise ConfigError("executor=slurm needs submitit: pip install 'gopre[cluster]'") from None
-        ex = submitit.AutoExecutor(folder=self.output_dir / "slurm" / "%j", cluster=self.cluster,
-                                   slurm_max_num_timeout=self.max_requeues)
-        if ex.cluster == "debug":
-            raise ConfigError("executor.cluster: no SLURM here (sbatch not found); executor.cluster=local "
-                              "runs the array on this machine")
-        threads = max(j.execution.threads for j in jobs)
-        params = {"timeout_min": self.timeout_min, "cpus_per_task": threads, "name": jobs[0].sweep,
-                  "slurm_array_parallelism": self.array_parallelism}
-        if self.gpus_per_job:
-            params["gpus_per_node"] = self.gpus_per_job
-        if self.mem_gb:
-            params["mem_gb"] = self.mem_gb
-        if self.partition:
-            params["slurm_partition"] = self.partition
-        if self.account:
-            params["slurm_account"] = self.account
-        if self.setup:
-            params["slurm_setup"] = self.setup
-        ex.update_parameters(**params)
-        self.slots = len(jobs) if ex.cluster == "local" else min(len(jobs), self.array_parallelism)
+        folder = self.output_dir / "slurm" / "%j"
+        if self.cluster == "local":  # every task a process here; requeued at timeout as on SLURM
+            ex = submitit.LocalExecutor(folder, max_num_timeout=self.max_requeues)
+            params = {"timeout_min": self.timeout_min}
+            if self.signal_delay_s is not None:
+                params["signal_delay_s"] = self.signal_delay_s
+            ex.update_parameters(**params)
+        else:
+            ex = submitit.AutoExecutor(folder=folder, cluster=self.cluster, slurm_max_num_timeout=self.max_requeues)
+            if ex.cluster != "slurm":
+                raise ConfigError("executor.cluster: no SLURM here (sbatch not found); executor.cluster=local "
+                                  "runs the array on this machine")
+            ex.update_parameters(**self._slurm_parameters(jobs))
+        self.slots = len(jobs) if self.cluster == "local" else min(len(jobs), self.array_parallelism)
         return ex
+
+    def _slurm_parameters(self, jobs: list[Job]) -> dict:
+        """sbatch settings through submitit's AutoExecutor (generic names, else ``slurm_``)."""
+        params = {"timeout_min": self.timeout_min, "cpus_per_task": max(j.execution.threads for j in jobs),
+                  "name": jobs[0].sweep, "slurm_array_parallelism": self.array_parallelism}
+        optional = {"gpus_per_node": self.gpus_per_job, "mem_gb": self.mem_gb, "slurm_partition": self.partition,
+                    "slurm_account": self.account, "slurm_setup": self.setup,
+                    "slurm_signal_delay_s": self.signal_delay_s}
+        params.update({k: v for k, v in optional.items() if v})
+        return params
 
     def map(self, jobs: list[Job], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:
