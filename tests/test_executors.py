@@ -274,8 +274,13 @@ def test_a_preempted_array_task_is_requeued_and_resumes_from_its_checkpoint(tmp_
     assert outcome.final.psnr == local.final.psnr and outcome.episode.selected == local.episode.selected
 
 
-def test_the_sbatch_settings_are_ones_submitit_accepts(tmp_path):
+def test_the_sbatch_settings_are_ones_submitit_accepts(tmp_path, monkeypatch):
     submitit = pytest.importorskip("submitit")
+    fake = tmp_path / "bin"  # submitit looks for srun before it takes settings; no job is submitted
+    fake.mkdir()
+    (fake / "srun").write_text("#!/bin/sh\nexit 1\n")
+    (fake / "srun").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake}:{os.environ['PATH']}")
     from pipeline.experiment.executors.slurm import SlurmExecutor
     jobs = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", "job.threads=4",
                                  f"output_dir={tmp_path}"]))
