@@ -163,18 +163,32 @@ def records_from_mlflow(uri: str, experiment: str) -> pd.DataFrame:
     found = client.get_experiment_by_name(experiment)
     if found is None:
         raise ValueError(f"{uri}: no MLflow experiment named {experiment!r}")
-    rows, token = [], None
+    runs, token = [], None
     while True:
         page = client.search_runs([found.experiment_id], "tags.config_hash != ''", max_results=1000,
                                   page_token=token)
-        for run in page:
-            rows += _rows_of_run(client, run, experiment)
+        runs += list(page)
         token = page.token
         if not token:
             break
+    rows = [row for run in current_runs(runs) for row in _rows_of_run(client, run, experiment)]
     if not rows:
         raise ValueError(f"{uri}: experiment {experiment!r} has no job runs")
     return pd.DataFrame(rows)
+
+
+def current_runs(runs: list) -> list:
+    """One run per job (config hash): its latest FINISHED run, else its latest run. A replay
+    (tracking_sync) or a relaunch leaves the runs it supersedes (KILLED, FAILED, a partial child
+    run of an outage) beside the one that counts; a report reads only that one."""
+    chosen: dict[str, object] = {}
+    for run in runs:
+        key = run.data.tags["config_hash"]
+        best = chosen.get(key)
+        rank = (run.info.status == "FINISHED", run.info.start_time or 0)
+        if best is None or rank > (best.info.status == "FINISHED", best.info.start_time or 0):
+            chosen[key] = run
+    return list(chosen.values())
 
 
 def _rows_of_run(client, run, experiment: str) -> list[dict]:

@@ -270,11 +270,13 @@ class SweepRun:
         scenes = validate_sweep([j for j in self.jobs if j.config_hash not in recorded],
                                 bool(self.cfg.get("validate_images", True)))
         self.tracker = make_tracker(self.resolved["tracking"], self.output_dir, self.name)
-        if stale_driver:  # the last driver here was killed: its open runs will never be closed
-            closed = self.tracker.close_stale_runs()
-            if closed:
-                LOG.info(f"[{self.name}] note: {len(closed)} MLflow run(s) left RUNNING by the killed driver "
-                         f"marked KILLED")
+        # this driver holds output_dir's lock: a run of this folder still RUNNING belongs to a driver
+        # that died (killed, crashed, or lost its tracking server); it ends KILLED, and a report
+        # reads each job's FINISHED run (records.current_runs)
+        closed = self.tracker.close_stale_runs()
+        if closed:
+            why = "the killed driver" if stale_driver else "an earlier driver that did not end them"
+            LOG.info(f"[{self.name}] note: {len(closed)} MLflow run(s) left RUNNING by {why} marked KILLED")
         done = recorded | self.tracker.finished_hashes()
         self.todo = execution_order([j for j in self.jobs if j.config_hash not in done])
         LOG.info(f"[{self.name}] {len(self.jobs)} jobs: {len(self.jobs) - len(self.todo)} already finished "
@@ -354,7 +356,19 @@ def sync_tracking(cfg: DictConfig) -> dict:
     records = RecordsFile(output_dir)
     finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None
     resolved = OmegaConf.to_container(cfg, resolve=True)
+    try:
+        lock = SweepLock(output_dir).acquire()  # no sweep may run in this folder while it is replayed
+    except SweepLocked as err:
+        raise ConfigError(str(err)) from None
+    try:
+        return _sync(cfg, jobs, output_dir, records, finals, resolved)
+    finally:
+        lock.release()
+
+
+def _sync(cfg: DictConfig, jobs: dict, output_dir: Path, records: RecordsFile, finals, resolved: dict) -> dict:
     tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
+    closed = tracker.close_stale_runs()  # partial runs of the outage, the parent left open
     have = tracker.finished_hashes()
     missing = [] if finals is None else [h for h in finals["config_hash"] if h not in have]
     synced, unknown = [], []
@@ -375,7 +389,7 @@ def sync_tracking(cfg: DictConfig) -> dict:
                       records.frame[records.frame["config_hash"] == config_hash].to_dict("records")])
         synced.append(config_hash)
     LOG.info(f"[{cfg.name}] tracking sync: {len(synced)} run(s) replayed into {tracker.uri}, "
-             f"{len(have & set(jobs))} already there"
+             f"{len(have & set(jobs))} already there, {len(closed)} left RUNNING marked KILLED"
              + (f", {len(unknown)} not replayable (not in this sweep's config, or no jobs/<hash>/artifacts/result.json): "
                 f"{', '.join(unknown)}" if unknown else ""))
     return {"synced": synced, "unknown": unknown}

@@ -6,6 +6,11 @@ tracking server. Child runs carry the tags method, dataset, scene, protocol, see
 ``mlflow.parentRunId``; params are the flattened job config; per-round metrics use step = number
 of views, so the UI draws PSNR-vs-views curves. A job's child run opens with its first round
 message (``log_round``, while the job runs) and is completed by ``log_job`` when it ends.
+
+With a server (``uri=http://...``) the artifacts go through it when it serves them (``mlflow server
+--artifacts-destination ...``: ``mlflow-artifacts:/`` locations), so every client sees them; a
+server started with ``--default-artifact-root DIR`` instead makes each client write DIR itself.
+The driver says so, once, when the experiment's artifact location is a plain path or file URI.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 from pipeline.active.results import RoundRecord
 from pipeline.experiment.records import SEARCH_TAKEN_CODES
@@ -68,6 +74,22 @@ def round_metrics(r: RoundRecord) -> list[tuple[str, float, int]]:
                                                                    "best_pool_score", "evaluations", "seconds")]
         out.append(("search_taken", SEARCH_TAKEN_CODES[r.search["taken"]], step))
     return out
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    """What the sweep driver tells its tracking store (two implementations: ``MlflowTracker``,
+    ``NoTracker``). ``uri``: where it is (None: nowhere)."""
+
+    uri: str | None
+
+    def finished_hashes(self) -> set[str]: ...
+    def start(self, sweep_config: dict, jobs: int) -> None: ...
+    def log_round(self, job: Job, message: RoundMessage) -> None: ...
+    def log_job(self, job: Job, outcome: JobOutcome) -> str | None: ...
+    def end(self, summary: dict) -> None: ...
+    def interrupt(self, summary: dict) -> None: ...
+    def close_stale_runs(self) -> list[str]: ...
 
 
 class NoTracker:
@@ -137,6 +159,8 @@ class MlflowTracker:
         self.uri = uri or f"sqlite:///{output_dir / 'mlflow.db'}"
         self.client = MlflowClient(tracking_uri=self.uri)
         self.experiment_id = self._experiment(experiment, None if uri else (output_dir / "mlartifacts").as_uri())
+        if uri:
+            self._say_where_artifacts_go()
         self.parent: str | None = None
         # config hash -> (child run opened by a round message, steps (views) it has logged)
         self.live: dict[str, tuple[str, set[int]]] = {}
@@ -153,6 +177,14 @@ class MlflowTracker:
             if found is None:
                 raise
             return found.experiment_id
+
+    def _say_where_artifacts_go(self) -> None:
+        location = self.client.get_experiment(self.experiment_id).artifact_location or ""
+        if not location.startswith(("mlflow-artifacts:", "s3://", "gs://", "wasbs://", "hdfs://")):
+            console().warning(f"warning: the tracking server stores this experiment's artifacts at {location}, "
+                              "a path each client writes itself: clients on other machines will not see them. "
+                              "Start the server with --artifacts-destination DIR_OR_S3 (proxied artifacts), "
+                              "as docker/compose.yaml does")
 
     def finished_hashes(self) -> set[str]:
         hashes, token = set(), None
@@ -309,7 +341,7 @@ class MlflowTracker:
                 self.client.log_artifacts(self.parent, str(Path(tmp) / "figures"), "figures")
 
 
-def make_tracker(cfg: dict, output_dir: Path, experiment: str):
+def make_tracker(cfg: dict, output_dir: Path, experiment: str) -> Tracker:
     kind = cfg.get("kind")
     if kind == "none":
         return NoTracker()
