@@ -10,6 +10,7 @@ driver, which prints it and logs it to the tracker.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 import traceback
@@ -40,9 +41,29 @@ def set_threads(threads: int) -> None:
         os.environ[var] = str(threads)
 
 
+def job_logger(folder: Path) -> logging.Logger:
+    """The job's logger (``gopre.job.<hash>``), writing its folder's ``log.txt`` wherever the job
+    runs (a Ray worker, a SLURM task, the driver): a retry on another node appends to the same file.
+    Failed attempts and warnings at WARNING, rounds at INFO."""
+    logger = logging.getLogger(f"gopre.job.{folder.name}")
+    path = str(JobFolder(folder).log_file.absolute())
+    if not any(getattr(h, "baseFilename", None) == path for h in logger.handlers):
+        for old in list(logger.handlers):  # the same hash in another folder (a test, a new output_dir)
+            logger.removeHandler(old)
+            old.close()
+        handler = logging.FileHandler(path, delay=True)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
+    return logger
+
+
 def _log(folder: Path, line: str) -> None:
-    with open(JobFolder(folder).log_file, "a") as f:
-        f.write(f"{time.strftime('%H:%M:%S')} {line}\n")
+    logger = job_logger(folder)
+    logger.log(logging.WARNING if line.startswith(("warning", "attempt")) else logging.INFO, line)
+    for handler in logger.handlers:
+        handler.flush()
 
 
 Report = Callable[[RoundMessage], None]
