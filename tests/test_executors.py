@@ -59,9 +59,13 @@ def test_a_local_job_records_where_and_under_what_it_ran(tmp_path):
     from pipeline.experiment.provenance import code_version, environment
     from pipeline.experiment.sweep import run_sweep
     out = tmp_path / "o"
-    run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local", "tracking=none",
-                        f"output_dir={out}"]))
+    summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local",
+                                  "tracking=mlflow", f"output_dir={out}"]))
     final = RecordsFile(out).frame.query("kind == 'final'").iloc[0]
+    from mlflow import MlflowClient
+    tags = MlflowClient(summary.tracking_uri).get_run(final["run_id"]).data.tags
+    assert tags["worker.node"] == "local" and tags["worker.packages"] == environment().packages
+    assert tags["worker.starts"] == "1" and tags["worker.code_version"] == code_version()
     assert final["node"] == "local" and final["host"] == os.uname().nodename
     assert final["worker_code_version"] == code_version() and final["packages"] == environment().packages
     assert final["starts"] == 1 and final["elapsed_seconds"] >= final["wall_seconds"] > 0

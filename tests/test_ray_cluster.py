@@ -172,3 +172,39 @@ def test_a_node_without_the_data_and_a_driver_without_the_token_are_one_error_ea
     refused = subprocess.run([str(BIN / "gopre-run"), *args], capture_output=True, text=True, timeout=600, env=env)
     assert refused.returncode == 2
     assert "RAY_AUTH_MODE=token" in refused.stderr and "Traceback" not in refused.stderr, refused.stderr[-3000:]
+
+
+def test_the_cluster_extra_joins_through_ray_client_and_the_jobs_api(tmp_path, cluster):
+    """gopre[cluster]: Ray Client (executor.address=ray://...) and the dashboard's Jobs API
+    (`ray job submit`, what KubeRay's RayJob uses) on a head started as docker/compose.yaml does."""
+    pytest.importorskip("grpc", reason="the cluster extra is not installed: pip install 'gopre[cluster]'")
+    port, client_port, dashboard_port = free_port(), free_port(), free_port()
+    head = RayNode.__new__(RayNode)  # a head with the dashboard and the Ray Client server
+    temp = Path("/tmp") / f"ray-dash-{os.getpid()}-{port}"
+    head.temp, head.log = temp, tmp_path / "head.log"
+    head.proc = subprocess.Popen(
+        [str(ray_bin()), "start", "--head", f"--port={port}", "--num-cpus=2", f"--temp-dir={temp}",
+         "--disable-usage-stats", "--include-dashboard=true", "--dashboard-host=127.0.0.1",
+         f"--dashboard-port={dashboard_port}", f"--ray-client-server-port={client_port}", "--block"],
+        stdout=open(head.log, "w"), stderr=subprocess.STDOUT, start_new_session=True,
+        env={**os.environ, **TOKEN_ENV})
+    try:
+        deadline = time.time() + 180
+        while "Ray runtime started" not in head.log.read_text():
+            assert head.proc.poll() is None and time.time() < deadline, head.log.read_text()[-3000:]
+            time.sleep(0.3)
+        common = ["experiment=debug", *TINY, "method=[random]", "tracking=none", "executor=ray"]
+        through_client = gopre_run(*common, f"executor.address=ray://127.0.0.1:{client_port}",
+                                   f"output_dir={tmp_path / 'client'}")
+        output, _ = through_client.communicate(timeout=600)
+        assert through_client.returncode == 0, output[-3000:]
+        assert json.loads((tmp_path / "client" / "summary.json").read_text())["finished"] == 1
+        submitted = subprocess.run(
+            [str(ray_bin()), "job", "submit", "--address", f"http://127.0.0.1:{dashboard_port}", "--",
+             str(BIN / "gopre-run"), *common, "executor.address=auto", f"output_dir={tmp_path / 'job'}"],
+            capture_output=True, text=True, timeout=600, env={**os.environ, **TOKEN_ENV})
+        assert submitted.returncode == 0, submitted.stdout[-3000:] + submitted.stderr[-3000:]
+        assert "succeeded" in submitted.stdout + submitted.stderr
+        assert json.loads((tmp_path / "job" / "summary.json").read_text())["finished"] == 1
+    finally:
+        head.stop()

@@ -178,12 +178,13 @@ def records_from_mlflow(uri: str, experiment: str) -> pd.DataFrame:
 
 
 def current_runs(runs: list) -> list:
-    """One run per job (config hash): its latest FINISHED run, else its latest run. A replay
-    (tracking_sync) or a relaunch leaves the runs it supersedes (KILLED, FAILED, a partial child
-    run of an outage) beside the one that counts; a report reads only that one."""
-    chosen: dict[str, object] = {}
+    """One run per job of each sweep folder (output_dir tag, config hash): its latest FINISHED
+    run, else its latest run. A replay (tracking_sync) or a relaunch leaves the runs it supersedes
+    (KILLED, FAILED, a partial child run of an outage) beside the one that counts; a report reads
+    only that one. Two sweep folders that ran the same job keep one run each."""
+    chosen: dict[tuple, object] = {}
     for run in runs:
-        key = run.data.tags["config_hash"]
+        key = (run.data.tags.get("output_dir"), run.data.tags["config_hash"])
         best = chosen.get(key)
         rank = (run.info.status == "FINISHED", run.info.start_time or 0)
         if best is None or rank > (best.info.status == "FINISHED", best.info.start_time or 0):

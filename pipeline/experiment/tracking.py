@@ -247,6 +247,9 @@ class MlflowTracker:
         """Complete the job's child run (the live one, else a new one) with its final state."""
         run_id, logged = self.live.pop(job.config_hash, None) or (self._child_run(job), set())
         tags = {"attempts": str(outcome.attempts)}
+        w = outcome.worker  # where and under what it ran (executors.worker), as the records have it
+        tags.update({f"worker.{k}": str(w[k]) for k in ("host", "node", "code_version", "packages", "locked",
+                                                         "cpu", "starts") if k in w})
         final = outcome.final
         if final is not None:
             tags["degraded"] = str(bool(final.degraded)).lower()  # > 3 dB below its last round (see records)
