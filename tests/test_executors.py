@@ -16,7 +16,7 @@ from pipeline.experiment.executors import EXECUTOR_KINDS, Executor, make_executo
 from pipeline.experiment.executors.worker import DriverIdentity, read_starts, run_here
 from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.records import RecordsFile
-from tests.test_experiment import TINY, composed
+from tests.test_experiment import TINY, composed, ray_session  # noqa: F401 (a fixture)
 
 BIN = Path(sys.executable).parent
 
@@ -114,27 +114,19 @@ def test_the_lock_pins_every_declared_dependency_and_make_env_installs_it():
 
 # --- Ray ---------------------------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def ray2():
-    ray = pytest.importorskip("ray")
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
-def test_round_progress_survives_a_lost_inbox_and_posting_never_blocks(ray2, capsys):
+def test_round_progress_survives_a_lost_inbox_and_posting_never_blocks(ray_session, capsys):
     from pipeline.experiment.executors.ray_cluster import RoundChannel
     heard = []
-    channel = RoundChannel(ray2, [], lambda job, message: heard.append(message))
-    assert ray2.get(channel.inbox.node.remote()) == ray2.get_runtime_context().get_node_id()  # on the driver's node
+    channel = RoundChannel(ray_session, [], lambda job, message: heard.append(message))
+    assert ray_session.get(channel.inbox.node.remote()) == ray_session.get_runtime_context().get_node_id()  # on the driver's node
 
-    @ray2.remote(num_cpus=0)
+    @ray_session.remote(num_cpus=0)
     def post(inbox):
         inbox.post.remote("h", {"x": 1})  # what a task does: no ray.get
         return "posted"
 
-    ray2.kill(channel.inbox)  # the inbox is gone (its node lost, say)
-    assert ray2.get(post.remote(channel.inbox), timeout=60) == "posted"  # the task is not hurt
+    ray_session.kill(channel.inbox)  # the inbox is gone (its node lost, say)
+    assert ray_session.get(post.remote(channel.inbox), timeout=60) == "posted"  # the task is not hurt
     channel.drain()
     channel.drain()  # said once, then quiet
     warnings = [ln for ln in capsys.readouterr().out.splitlines() if "round progress" in ln]
@@ -142,19 +134,19 @@ def test_round_progress_survives_a_lost_inbox_and_posting_never_blocks(ray2, cap
     channel.close()
 
 
-def test_a_node_that_cannot_read_the_data_or_runs_other_code_is_named_before_any_job(ray2, tmp_path):
+def test_a_node_that_cannot_read_the_data_or_runs_other_code_is_named_before_any_job(ray_session, tmp_path):
     from pipeline.experiment.executors.ray_cluster import RayExecutor
     present = tmp_path / "a.png"
     present.write_bytes(b"x")
     scene = SimpleNamespace(splits={"train": SimpleNamespace(images=SimpleNamespace(paths=[present]))})
     executor = RayExecutor(output_dir=tmp_path / "out")
-    executor.check_nodes(ray2, {"s": scene}, DriverIdentity.here())  # all well: no error
+    executor.check_nodes(ray_session, {"s": scene}, DriverIdentity.here())  # all well: no error
     missing = SimpleNamespace(splits={"test": SimpleNamespace(images=SimpleNamespace(
         paths=[present, tmp_path / "gone.png"]))})
     with pytest.raises(ConfigError) as err:
-        executor.check_nodes(ray2, {"s": scene, "t": missing}, DriverIdentity("0123456789ab", "feedfacecafe"))
+        executor.check_nodes(ray_session, {"s": scene, "t": missing}, DriverIdentity("0123456789ab", "feedfacecafe"))
     text = str(err.value)
-    node = ray2.get_runtime_context().get_node_id()[:12]
+    node = ray_session.get_runtime_context().get_node_id()[:12]
     assert f"node {node}" in text and "cannot read 1 scene file(s), e.g. " + str(tmp_path / "gone.png") in text
     assert "code " in text and "0123456789ab" in text and "feedfacecafe" in text
     assert "no job was started" in text
