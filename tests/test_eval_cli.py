@@ -64,3 +64,19 @@ def test_a_real_capture_is_scored_on_every_eighth_view(tmp_path):
     views = len(load_scene(bonsai, width=32).split(result["test_split"]).cameras)
     assert result["test_views"] == math.ceil(views / 8) == len({r["id"] for r in result["per_view"]})
     assert all(r["id"] % 8 == 0 for r in result["per_view"])
+
+
+def test_our_own_splat_output_is_scored_and_exported(scene_dir, tmp_path, capsys):
+    """gopre-export --format splat wrote a file that gopre-eval and gopre-export could not read
+    ('ascii' codec can't decode): it is read as what it holds."""
+    from pipeline.cli.export import main as export_main
+    g = random_scene(300, seed=3, sh_degree=0, extent=0.8)
+    model = ply.save(g, tmp_path / "m.ply")
+    assert export_main([str(model), "--format", "splat", "--out", str(tmp_path / "m.splat")]) == 0
+    capsys.readouterr()
+    assert main([str(tmp_path / "m.splat"), str(scene_dir), "--no-lpips"]) == 0
+    from_splat = json.loads(capsys.readouterr().out)
+    exact = evaluate_model(model, scene_dir, lpips=False)
+    assert from_splat["num_gaussians"] == 300 and abs(from_splat["psnr"] - exact["psnr"]) < 0.5
+    assert export_main([str(tmp_path / "m.splat"), "--format", "ply", "--out", str(tmp_path / "back.ply")]) == 0
+    assert len(ply.load(tmp_path / "back.ply")) == 300

@@ -156,3 +156,37 @@ def test_spz_round_trip_keeps_the_model_to_its_quantisation(tmp_path, capsys):
     assert "c.spz: 400 Gaussians, SH degree 2, format spz" in line and "dropped" not in line
     assert main([str(tmp_path / "m.ply"), "--format", "ply_compressed", "--out", str(tmp_path / "c.ply")]) == 0
     assert "c.ply: 400 Gaussians" in capsys.readouterr().out  # what the compressed file holds
+
+
+def test_a_splat_file_reads_back_as_what_it_holds(tmp_path):
+    """The antimatter15 .splat keeps positions and scales as float32, colour and opacity in 8 bits
+    (truncated), rotations in 8 bits and no SH beyond degree 0; reading it gives exactly that."""
+    g = random_scene(200, seed=4, sh_degree=1)
+    back = ply.load(ply.save(g, tmp_path / "m.splat", "splat"))
+    assert len(back) == len(g) and back.sh_degree == 0
+    # the exporter sorts rows: match them by position (exact float32)
+    order = {tuple(p): i for i, p in enumerate(g.means.tolist())}
+    idx = torch.tensor([order[tuple(p)] for p in back.means.tolist()])
+    assert torch.equal(back.means, g.means[idx])
+    assert torch.allclose(back.log_scales, g.log_scales[idx], atol=1e-5)
+    c0 = 0.28209479177387814
+    colour, colour_back = (0.5 + c0 * g.sh0[idx, 0]).clamp(0, 1), 0.5 + c0 * back.sh0[:, 0]
+    assert ((colour - colour_back) >= -1e-6).all() and ((colour - colour_back) < 1 / 255 + 1e-6).all()
+    alpha, alpha_back = torch.sigmoid(g.logit_opacities[idx]), torch.sigmoid(back.logit_opacities)
+    inside = (alpha > 1 / 255) & (alpha < 254 / 255)
+    assert ((alpha - alpha_back)[inside].abs() < 1 / 255 + 1e-6).all()
+    q = g.quats[idx] / g.quats[idx].norm(dim=1, keepdim=True)
+    assert ((q * back.quats).sum(1).abs() > 0.995).all()  # the same rotation, to 8 bits a component
+    raw = (tmp_path / "m.splat").read_bytes()  # the format's spec: rotation byte b holds (b - 128) / 128
+    rotation = torch.tensor([list(raw[32 * i + 28:32 * i + 32]) for i in range(len(back))], dtype=torch.float64)
+    expected = (rotation - 128) / 128
+    assert torch.allclose(back.quats.double(), expected / expected.norm(dim=1, keepdim=True), atol=1e-6)
+
+
+def test_a_model_file_of_another_kind_is_refused_naming_the_formats_read(tmp_path):
+    (tmp_path / "m.ksplat").write_bytes(b"\x00" * 64)
+    with pytest.raises(ValueError, match=r"m.ksplat: not a model file this reads; accepted: \.ply .*\.spz .*\.splat"):
+        ply.load(tmp_path / "m.ksplat")
+    (tmp_path / "cut.splat").write_bytes(b"\x00" * 33)
+    with pytest.raises(ValueError, match="33 bytes is not a whole number of 32-byte .splat rows"):
+        ply.load(tmp_path / "cut.splat")

@@ -26,7 +26,7 @@ def default_out(source: str, fmt: str, mlflow: bool) -> Path:
     if base.is_dir():
         base = base / "model"
     else:
-        base = base.with_suffix("") if base.suffix in (".pt", ".ply") else base
+        base = base.with_suffix("") if base.suffix in (".pt", ".ply", ".splat", ".spz") else base
         base = base.parent / f"{base.name}-export"
     return base.parent / (base.name + ply.SUFFIX[fmt])
 
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=command_name("export"), description=__doc__,
                                      epilog=alias_note("export"),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("source", help="job folder, episode.pt, .ply, or an MLflow run id")
+    parser.add_argument("source", help="job folder, episode.pt, a .ply / .spz / .splat model, or an MLflow run id")
     parser.add_argument("--format", default="ply", choices=ply.FORMATS)
     parser.add_argument("--out", type=Path, default=None, help="output file (default: beside the source)")
     parser.add_argument("--mlflow-uri", default=None, help="read SOURCE as a run id from this tracking URI")

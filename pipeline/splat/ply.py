@@ -4,8 +4,9 @@ The INRIA PLY (what every 3DGS viewer reads) stores the raw parameters as float3
 properties: x, y, z; f_dc_0..2 (SH DC per channel); f_rest_* (the higher SH coefficients,
 channel-major: all of red's, then green's, then blue's); opacity (the logit); scale_0..2 (log
 scales); rot_0..3 (the quaternion, w first). ``ply_compressed`` (SuperSplat) and ``splat``
-(antimatter15) are lossy viewer formats: written, not read back; ``spz`` (Niantic, through
-``gsply``) is quantised but read back too. Reading goes through
+(antimatter15) are lossy viewer formats; the ``.splat`` is read back too, as what it holds (8-bit
+colour and opacity, no view-dependent SH, 8-bit rotations); ``spz`` (Niantic, through
+``gsply``) is quantised but read back too. Reading PLY goes through
 ``plyfile`` (binary of either endianness or ASCII; extra properties such as normals or uchar
 colours are ignored).
 """
@@ -119,14 +120,53 @@ def _vertex_table(path: Path):
     return data["vertex"]
 
 
+READABLE = {".ply": "INRIA 3DGS PLY", ".spz": "Niantic SPZ", ".splat": "antimatter15 .splat (lossy)"}
+SPLAT_ROW = 32  # bytes: position float32 x3, scale float32 x3, RGBA uint8 x4, quaternion uint8 x4
+SH_C0 = 0.28209479177387814  # the degree-0 SH basis constant: colour = 0.5 + C0 * dc
+
+
+def load_splat(path: Path) -> Gaussians:
+    """An antimatter15 ``.splat`` file (what ``gopre-export --format splat`` writes) as ``Gaussians``:
+    positions and scales exact (float32), colour and opacity to 1/255, rotations to 1/128, and no
+    view-dependent colour (SH degree 0): what the format holds."""
+    data = path.read_bytes()
+    if not data or len(data) % SPLAT_ROW:
+        raise ValueError(f"{path}: {len(data)} bytes is not a whole number of {SPLAT_ROW}-byte .splat rows")
+    rows = np.frombuffer(data, dtype=np.dtype([("position", "<f4", 3), ("scale", "<f4", 3),
+                                               ("rgba", "u1", 4), ("rotation", "u1", 4)]))
+    scales = rows["scale"].astype(np.float64)
+    if not np.isfinite(scales).all() or (scales <= 0).any():
+        raise ValueError(f"{path}: not a .splat file (non-positive or non-finite scales)")
+    rgba = rows["rgba"].astype(np.float64) / 255.0
+    alpha = np.clip(rgba[:, 3], 0.5 / 255, 1 - 0.5 / 255)  # 0 and 255 are the ends of a rounded range
+    quats = (rows["rotation"].astype(np.float64) - 128.0) / 128.0
+    norms = np.linalg.norm(quats, axis=1, keepdims=True)
+    quats = np.where(norms > 0, quats / np.maximum(norms, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
+    count = len(rows)
+
+    def tensor(values):
+        return torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32))
+    g = Gaussians(means=tensor(rows["position"]), log_scales=tensor(np.log(scales)), quats=tensor(quats),
+                  logit_opacities=tensor(np.log(alpha / (1 - alpha))),
+                  sh0=tensor((rgba[:, :3] - 0.5) / SH_C0)[:, None, :], shN=torch.zeros(count, 0, 3))
+    g.validate()
+    return g
+
+
 def load(path: str | Path) -> Gaussians:
-    """Read an INRIA 3DGS PLY into float32 ``Gaussians`` (CPU). Extra vertex properties (normals,
-    uchar colours, ...) are ignored; the 3DGS ones may be float or double."""
+    """Read a 3DGS file into float32 ``Gaussians`` (CPU): an INRIA PLY (extra vertex properties
+    such as normals or uchar colours are ignored; the 3DGS ones may be float or double), an SPZ,
+    or an antimatter15 ``.splat``. Any other suffix is refused naming the formats read."""
     path = Path(path)
     if not path.exists():
         raise ValueError(f"{path}: no such file")
     if path.suffix == ".spz":
         return load_spz(path)
+    if path.suffix == ".splat":
+        return load_splat(path)
+    if path.suffix != ".ply":
+        accepted = ", ".join(f"{suffix} ({name})" for suffix, name in READABLE.items())
+        raise ValueError(f"{path}: not a model file this reads; accepted: {accepted}")
     vertex = _vertex_table(path)
     names = [prop.name for prop in vertex.properties]
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
