@@ -126,7 +126,7 @@ if os.environ.get("GOPRE_TEST_FAIL_SCENE"):  # the test's own fault injection, i
 
 
 @pytest.mark.slow
-def test_pipeline_run_exit_status_is_the_number_of_failed_jobs(tmp_path, monkeypatch):
+def test_pipeline_run_exit_status_says_jobs_failed_apart_from_a_config_error(tmp_path, monkeypatch):
     """Jobs that raise at run time (a scene that is fine when the sweep is validated; the failure
     is injected into the child process by a sitecustomize on its path)."""
     good = generate(tmp_path / "scenes" / "good", seed=0, size=24, n_train=8, n_test=4)
@@ -138,8 +138,12 @@ def test_pipeline_run_exit_status_is_the_number_of_failed_jobs(tmp_path, monkeyp
     common = [str(BIN / "pipeline-run"), *TINY, "job.retries=0", f"dataset.generated.root={tmp_path / 'scenes'}",
               "dataset.generated.generate=null", f"output_dir={tmp_path / 'o'}"]
     res = run_cli(*common, "dataset.generated.scenes=[good,flaky]", "method=[random,coverage]")
-    assert res.returncode == 2, res.stdout[-2000:] + res.stderr[-2000:]  # the two flaky jobs
-    assert "config error" not in res.stderr  # they ran and failed; 2 is their count here
+    assert res.returncode == 3, res.stdout[-2000:] + res.stderr[-2000:]  # the two flaky jobs failed
+    assert "config error" not in res.stderr and "failed 2" in res.stdout  # they ran and failed
+    failed = [ln for ln in res.stdout.splitlines() if ": FAILED after 1 attempt(s): RuntimeError: injected failure" in ln]
+    assert len(failed) == 2, res.stdout[-3000:]
+    path = Path(failed[0].rsplit("(traceback: ", 1)[1].rstrip(")"))
+    assert path.name == "traceback.txt" and "injected failure" in path.read_text()
     res = run_cli(*common, "dataset.generated.scenes=[good]", "method=[random,coverage]")
     assert res.returncode == 0 and "skipped 2" in res.stdout
 

@@ -309,6 +309,23 @@ def test_an_exit_inside_a_compiled_kernel_ends_the_job_instead_of_a_retry(tmp_pa
     with pytest.raises(SystemExit) as stopped:
         job_module.run_with_retries(job)
     assert stopped.value.code == 144
-    monkeypatch.setattr(job_module, "run_job", lambda *a, **k: 1 / 0)  # an application error: retried
+    def io_trouble(*args, **kwargs):
+        raise OSError("a network file system hiccup")
+    monkeypatch.setattr(job_module, "run_job", io_trouble)  # transient: retried
     outcome = job_module.run_with_retries(job)
     assert not outcome.finished and outcome.attempts == 3
+
+
+@pytest.mark.parametrize("error", [ZeroDivisionError("division by zero"), TypeError("'>=' not supported"),
+                                   ValueError("episode.pt: unreadable checkpoint"), FileNotFoundError("x.png")])
+def test_a_deterministic_failure_is_not_retried(error, tmp_path, monkeypatch):
+    from pipeline.experiment import job as job_module
+    job = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", "job.retries=3",
+                                f"output_dir={tmp_path}"]))[0]
+
+    def fails(*args, **kwargs):
+        raise error
+    monkeypatch.setattr(job_module, "run_job", fails)
+    outcome = job_module.run_with_retries(job)
+    assert not outcome.finished and outcome.attempts == 1 and len(outcome.errors) == 1
+    assert "deterministic: not retried" in (Path(job.execution.job_dir) / "log.txt").read_text()

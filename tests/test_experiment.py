@@ -308,7 +308,7 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base, monk
 
     def failing_on_flaky(scene, *args, **kwargs):
         if Path(scene.root).name == "flaky":
-            raise RuntimeError("injected failure on r_flaky")
+            raise OSError("injected I/O failure on r_flaky")  # transient: retried
         return real(scene, *args, **kwargs)
     monkeypatch.setattr(job_module, "run_episode", failing_on_flaky)
     OmegaConf.set_struct(cfg, False)
@@ -319,7 +319,7 @@ def test_a_raising_job_is_retried_then_failed_while_the_others_finish(base, monk
     frame = RecordsFile(out).frame
     failed = frame[frame["status"] == "FAILED"]
     assert len(failed) == 2 and (failed["attempts"] == 2).all()
-    assert failed["error"].str.contains("injected failure on r_flaky").all()
+    assert failed["error"].str.contains("injected I/O failure on r_flaky").all()
     hash_ = failed["config_hash"].iloc[0]
     assert "traceback" in (out / "jobs" / hash_ / "artifacts" / "traceback.txt").read_text().lower()
     log = (out / "jobs" / hash_ / "log.txt").read_text()

@@ -5,8 +5,9 @@
     gopre-run experiment=science plan=true      # the job table and an estimate; starts nothing
     gopre-run experiment=demo tracking_sync=true  # replay runs a down tracking server missed
 
-The exit status is the number of failed jobs (capped at 100); 0 when every job finished; 2 on a
-config error (nothing started); 130 after Ctrl-C (SIGINT), 143 after SIGTERM: running jobs are
+The exit status is 0 when every job finished; 3 when some failed (the summary line says how many,
+each failed job's line names its error and traceback.txt); 2 on a config error (nothing
+started); 1 on a crash of the driver itself; 130 after Ctrl-C (SIGINT), 143 after SIGTERM: running jobs are
 cancelled, their MLflow runs marked KILLED, and the same command resumes them from their last
 round checkpoint.
 """
@@ -47,6 +48,9 @@ def register_resolvers() -> None:
 
 
 register_resolvers()
+
+
+JOBS_FAILED = 3  # apart from a config error (2), a crash (1) and a stop signal (128 + N)
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
@@ -95,7 +99,7 @@ def main(cfg: DictConfig) -> None:
     if hint:
         print(hint, flush=True)
     if summary.failed:
-        sys.exit(min(summary.failed, 100))
+        sys.exit(JOBS_FAILED)
 
 
 if __name__ == "__main__":

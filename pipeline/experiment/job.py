@@ -198,10 +198,21 @@ def stop_request(err: BaseException) -> BaseException | None:
     return None
 
 
+def transient(err: BaseException) -> bool:
+    """Whether another attempt could end otherwise: input/output trouble (a file system or network
+    hiccup), memory exhausted (the host's, or a device's: torch.OutOfMemoryError). Anything else (a
+    bad option, a corrupted checkpoint, a wrong shape, a division by zero) fails the same way again,
+    and is not retried. A lost worker process is the executor's to rerun (Ray, SLURM), not this."""
+    missing = (FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError)
+    if isinstance(err, OSError):
+        return not isinstance(err, missing)
+    return isinstance(err, (MemoryError, torch.OutOfMemoryError))
+
+
 def run_with_retries(job: Job, scene: Scene | None = None, report: Report | None = None) -> JobOutcome:
-    """``run_job`` with ``execution.retries`` re-runs after an exception; the outcome says
-    FINISHED, or FAILED with the last traceback. Never raises for an application error; an exit or
-    stop request (``stop_request``) is raised, not retried."""
+    """``run_job`` with up to ``execution.retries`` re-runs after a transient error (``transient``);
+    the outcome says FINISHED, or FAILED with the traceback of each attempt. Never raises for an
+    application error; an exit or stop request (``stop_request``) is raised, not retried."""
     attempts = 1 + max(0, int(job.execution.retries))
     errors = []
     for attempt in range(1, attempts + 1):
@@ -216,5 +227,10 @@ def run_with_retries(job: Job, scene: Scene | None = None, report: Report | None
             errors.append(traceback.format_exc())
             folder = Path(job.execution.job_dir)
             folder.mkdir(parents=True, exist_ok=True)
-            _log(folder, f"attempt {attempt}/{attempts} failed:\n{errors[-1]}")
+            again = transient(err) and attempt < attempts
+            _log(folder, f"attempt {attempt}/{attempts} failed"
+                         + ("" if again or attempt == attempts else " (deterministic: not retried)")
+                         + f":\n{errors[-1]}")
+            if not again:
+                return JobOutcome.failed(attempt, errors)
     return JobOutcome.failed(attempts, errors)

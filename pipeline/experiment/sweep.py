@@ -67,7 +67,7 @@ class Progress:
         running = min(left, self.slots)
         LOG.info(f"[{self.name}] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
                  f"ETA {eta / 60:.1f} min | {job.label}: {outcome.status} "
-                 f"{_headline(outcome)}")
+                 f"{_headline(outcome, job)}")
         self.degraded(job, outcome)
 
     def round(self, job: Job, message: RoundMessage) -> None:
@@ -85,9 +85,11 @@ class Progress:
                         "(flagged in the records, MLflow tag degraded=true)")
 
 
-def _headline(outcome: JobOutcome) -> str:
-    if not outcome.finished:
-        return f"(see {TRACEBACK_ARTIFACT})"
+def _headline(outcome: JobOutcome, job: Job) -> str:
+    if not outcome.finished:  # the error's last line, and where its whole traceback is
+        last = next((ln.strip() for ln in reversed(outcome.traceback.splitlines()) if ln.strip()), "?")
+        path = Path(job.execution.job_dir) / "artifacts" / TRACEBACK_ARTIFACT
+        return f"after {outcome.attempts} attempt(s): {last[:300]} (traceback: {path})"
     if outcome.final is not None:
         return f"PSNR {outcome.final.psnr:.2f} dB in {outcome.seconds or 0:.0f} s"
     return f"AUSE {json.dumps({k: round(v, 3) for k, v in outcome.uncertainty.ause.items()})}"
