@@ -76,7 +76,7 @@ def test_latex_is_balanced_booktabs_with_macros(records):
         assert tex.count(rf"\begin{{{env}}}") == tex.count(rf"\end{{{env}}}") == 1
     assert tex.count("{") == tex.count("}")
     assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
-    assert r"\best{$26.50 \pm 0.71$}" in tex and r"\second{" in tex and r"\third{" in tex
+    assert r"\best{26.50 \pm 0.71}" in tex and r"\second{" in tex and r"\third{" in tex
     assert r"Global\_results \& more" in tex
     body = [line for line in tex.splitlines() if line.endswith(r"\\") and not line.startswith(" &")]
     columns = {line.count(" & ") for line in body if "multicolumn" not in line}
@@ -211,7 +211,7 @@ def test_cells_that_print_the_same_value_share_a_mark_in_both_formats():
     table = build_table(pd.DataFrame(rows), "T", "method", "dataset", ["psnr"])
     md, tex = to_markdown(table), to_latex(table)
     assert md.count("**23.30**") == 2 and "<ins>22.00</ins>" in md
-    assert tex.count(r"\best{$23.30$}") == 2 and r"\second{$22.00$}" in tex
+    assert tex.count(r"\best{23.30}") == 2 and r"\second{22.00}" in tex
 
 
 def test_latex_uses_math_minus_captions_the_content_and_sets_notes_apart():
@@ -219,8 +219,12 @@ def test_latex_uses_math_minus_captions_the_content_and_sets_notes_apart():
              "lpips_status": "LPIPS (vgg) unavailable: ModuleNotFoundError: No module named 'lpips'"}
             for m, v in [("a", -1.5), ("b", 2.0)]]
     tex = to_latex(build_table(pd.DataFrame(rows), "sweep_x", "method", "dataset", ["psnr", "lpips"]))
-    assert r"$-1.50$" in tex and "& -1.50" not in tex
-    assert r"\caption{sweep\_x: PSNR, LPIPS per method, mean $\pm$ std over seeds" in tex
+    assert r"\second{-1.50}" in tex and "& -1.50" not in tex  # the macro sets it in math: a math minus
+    assert r"\caption{sweep\_x: PSNR, LPIPS per method, one seed per cell (no spread)" in tex  # not "std"
+    two_seeds = pd.DataFrame([{**r, "seed": s} for r in rows for s in (0, 1)]).assign(psnr_auc=1.0)
+    tex2 = to_latex(build_table(two_seeds, "s", "method", "dataset", ["psnr", "psnr_auc"]))
+    assert r"mean $\pm$ std over 2 seeds" in tex2
+    assert "PSNR area: the area under the PSNR-vs-views curve" in tex2 and "PSNR area:" not in tex
     assert r"\label{tab:sweep-x}" in tex
     assert "ModuleNotFoundError" not in tex and "lpips package or its pretrained weights" in tex
     after = tex.split(r"\usebox{\gopretablebox}\fi")[1]  # the notes follow the (fitted) table
@@ -247,6 +251,29 @@ def test_the_latex_tables_compile_with_pdflatex_without_overfull_lines(records, 
     assert run.returncode == 0, log[-2000:]
     assert "Overfull \\hbox" not in log, [ln for ln in log.splitlines() if "Overfull" in ln]
     assert (tmp_path / "doc.pdf").stat().st_size > 0
+    # the caption's promise, read off the PDF: the best cell is set in a bold font, the third in an
+    # italic one (\textbf{$26.50$} set it in the upright roman: the marks were invisible)
+    fonts = pdf_text_by_font(tmp_path / "doc.pdf")
+    bold = "".join(text for font, text in fonts.items() if "CMBX" in font.upper())
+    italic = "".join(text for font, text in fonts.items() if "CMTI" in font.upper() or "CMMI" in font.upper())
+    digits = lambda text: "".join(c for c in text if c.isdigit())  # noqa: E731 (the point comes from a math font)
+    assert "2650" in digits(bold), fonts  # gopre's PSNR on blender, 26.50: the best
+    assert "2300" in digits(italic), fonts  # coverage's, 23.00: the third
+    regular = "".join(text for font, text in fonts.items() if "CMR" in font.upper())
+    assert "2650" not in digits(regular)
+
+
+def pdf_text_by_font(path) -> dict[str, str]:
+    """The text of a PDF's first page, joined per font (the font's BaseFont name)."""
+    pypdf = pytest.importorskip("pypdf")
+    chunks: dict[str, str] = {}
+
+    def visit(text, cm, tm, font, size):
+        if text and font is not None:
+            name = str(font.get("/BaseFont", ""))
+            chunks[name] = chunks.get(name, "") + text
+    pypdf.PdfReader(str(path)).pages[0].extract_text(visitor_text=visit)
+    return chunks
 
 
 def records_path(frame, tmp_path):

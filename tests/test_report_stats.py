@@ -141,3 +141,17 @@ def test_the_interval_is_bca_as_written_out_by_hand():
     percentile = np.quantile(boot, [0.025, 0.975])
     assert abs(by_hand[0] - percentile[0]) > 0.05  # the two rules really differ here
     assert bootstrap_interval(x) == pytest.approx(by_hand, abs=0.02)
+
+
+def test_one_pair_prints_no_interval(study):
+    """One pair has no interval: it printed +0.31 [+0.31, +0.31] as if it were exact."""
+    from pipeline.report.paper import Gap
+    from pipeline.report.tables import _paired_cells
+    final = study[(study["status"] == "FINISHED") & (study["seed"] == 0) & (study["dataset"] == study["dataset"].iloc[0])]
+    final = final[final["scene"] == final["scene"].iloc[0]]
+    (c,) = paired_comparisons(final, "gopre", "psnr")
+    assert c.n == 1
+    cell = _paired_cells(c, "psnr")[0]
+    assert cell.endswith(" [n/a]") and cell.count("[") == 1, cell
+    assert Gap(1, 0.31, 0.31, 0.31).text() == "+0.31 dB [n/a], n = 1"
+    assert Gap(2, 0.31, 0.1, 0.5).text() == "+0.31 dB [+0.10, +0.50], n = 2"

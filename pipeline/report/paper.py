@@ -77,7 +77,8 @@ class Gap:
 
     def text(self, unit: str = "dB") -> str:
         unit = f" {unit}" if unit else ""
-        return f"{self.mean:+.2f}{unit} [{self.low:+.2f}, {self.high:+.2f}], n = {self.n}"
+        interval = f"[{self.low:+.2f}, {self.high:+.2f}]" if self.n >= 2 else "[n/a]"  # 1 pair: no interval
+        return f"{self.mean:+.2f}{unit} {interval}, n = {self.n}"
 
 
 @dataclass(frozen=True)

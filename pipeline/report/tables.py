@@ -159,11 +159,28 @@ def tex_notes(notes: list[str]) -> list[str]:
     return [r"\par\smallskip", rf"\parbox{{\linewidth}}{{\footnotesize {body}}}"]
 
 
+AREA_DEFINITION = ("PSNR area: the area under the PSNR-vs-views curve over the rounds divided by "
+                   "its span of views, i.e. the curve's mean PSNR in dB")
+
+
+def seeds_phrase(table: Table) -> str:
+    """How the cells aggregate: mean ± std over the seeds, or single runs (no spread) when every
+    cell holds one seed."""
+    counts = {c.n for c in table.cells.values() if c is not None and c.mean is not None}
+    if counts and max(counts) <= 1:
+        return "one seed per cell (no spread)"
+    if len(counts) == 1:
+        return f"mean $\\pm$ std over {counts.pop()} seeds"
+    return "mean $\\pm$ std over the seeds each cell has"
+
+
 def latex_caption(table: Table) -> str:
-    """What the table shows, not only the sweep's name."""
+    """What the table shows, not only the sweep's name: the metrics, how cells aggregate over
+    seeds, what the marks mean and what "PSNR area" is when the table has it."""
     metrics = ", ".join(dict.fromkeys(METRIC_LABELS.get(m, m) for _, m in table.columns))
+    area = f"; {AREA_DEFINITION}" if any(m == "psnr_auc" for _, m in table.columns) else ""
     return (f"{_tex_escape(table.title)}: {_tex_escape(metrics)} per {_tex_escape(table.row_label.lower())}, "
-            "mean $\\pm$ std over seeds; best in bold, second underlined, third in italics")
+            f"{seeds_phrase(table)}; best in bold, second underlined, third in italics{area}")
 
 
 def _tex_label(text: str) -> str:
@@ -175,9 +192,11 @@ def to_latex(table: Table) -> str:
     per_group = len(table.columns) // max(len(groups), 1)
     arrows = {m: (r"$\downarrow$" if m in LOWER_IS_BETTER else r"$\uparrow$") for _, m in table.columns}
     lines = [r"% requires \usepackage{booktabs} and \usepackage{graphicx}",
-             r"\providecommand{\best}[1]{\textbf{#1}}",
-             r"\providecommand{\second}[1]{\underline{#1}}",
-             r"\providecommand{\third}[1]{\textit{#1}}",
+             # a cell is math ($23.61 \pm 0.10$): \textbf and \textit do not reach it, \boldmath and
+             # \mathit do (the marks are visible in the PDF: tests/test_report.py reads its fonts)
+             r"\providecommand{\best}[1]{{\boldmath$#1$}}",
+             r"\providecommand{\second}[1]{\underline{$#1$}}",
+             r"\providecommand{\third}[1]{$\mathit{#1}$}",
              r"\begin{table}[t]", r"\centering", rf"\caption{{{latex_caption(table)}}}",
              rf"\label{{tab:{_tex_label(table.title)}}}",
              *FIT_OPEN, r"\begin{tabular}{l" + "c" * len(table.columns) + "}", r"\toprule"]
@@ -197,7 +216,7 @@ def to_latex(table: Table) -> str:
             text = format_cell(cell, column[1])
             text = MISSING if text == MISSING else tex_number(text)
             if cell is not None and cell.rank in macro and text != MISSING:
-                text = f"{macro[cell.rank]}{{{text}}}"
+                text = f"{macro[cell.rank]}{{{text.strip('$')}}}"  # the macros set the math themselves
             out.append(text)
         lines.append(" & ".join(out) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}", *FIT_CLOSE]
@@ -232,7 +251,8 @@ def _paired_cells(c, metric: str) -> list[str]:
     if c is None:
         return [MISSING, MISSING, MISSING, MISSING]
     d = DIGITS.get(metric, 2)
-    return [f"{_signed(c.mean_difference, d)} [{_signed(c.low, d)}, {_signed(c.high, d)}]",
+    interval = f"[{_signed(c.low, d)}, {_signed(c.high, d)}]" if c.n >= 2 else f"[{MISSING}]"  # 1 pair: no interval
+    return [f"{_signed(c.mean_difference, d)} {interval}",
             f"{c.wins}/{c.losses}/{c.ties}", _p_value(c.wilcoxon_p), verdict(c)]
 
 
