@@ -59,6 +59,7 @@ def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dic
              "num_gaussians": r.num_gaussians, "per_candidate_ms": r.per_candidate_ms or None,
              "selection_seconds": r.selection_seconds or None,
              "selection_cpu_seconds": r.selection_cpu_seconds or None, "peak_rss_mb": r.peak_rss_mb,
+             "compile_seconds": r.compile_seconds,
              "selected": json.dumps(r.selected),
              **({"poses": json.dumps(r.poses), "search_taken": r.search["taken"],
                  "search_score": r.search["score"], "search_best_start_score": r.search["best_start_score"],
@@ -70,6 +71,7 @@ def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dic
                  "per_candidate_ms": float(np.mean([r.per_candidate_ms for r in picks])) if picks else None,
                  "selection_seconds": float(np.mean([r.selection_seconds for r in picks])) if picks else None,
                  "selection_cpu_seconds": _mean_present([r.selection_cpu_seconds for r in picks]),
+                 "compile_seconds": float(sum(r.compile_seconds for r in rounds)),
                  "peak_rss_mb": max((r.peak_rss_mb for r in rounds), default=None),
                  "selected": json.dumps(episode.selected), "initial": json.dumps(episode.initial),
                  **({"poses": json.dumps(episode.acquired_poses)} if episode.acquired_poses else {})})

@@ -166,7 +166,9 @@ def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) ->
                         ["selection_cpu_seconds"], methods)
     table.notes.append("Lower is better. The CPU time of a round's selection (scoring every "
                        "candidate), mean over the episode's rounds, then mean ± std over seeds; "
-                       "unlike wall time, other jobs on the same cores do not inflate it.")
+                       "unlike wall time, other jobs on the same cores do not inflate it. Numba's "
+                       "one-time kernel compilation (a fresh machine's first rounds) is taken out "
+                       "of it and recorded apart (records column compile_seconds).")
     return [table]
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -32,6 +33,7 @@ DISABLE_ENV = "GOPRE_DISABLE_COMPILED"  # set to 1 to force the torch fallback (
 
 def load():
     """The kernels module, or None when the compiled path cannot load (reason in ``load_error()``)."""
+    compile_seconds()  # the compile clock runs from before the first kernel compiles
     if "kernels" not in _STATE:
         _STATE["kernels"], _STATE["error"] = None, None
         if os.environ.get(DISABLE_ENV, "") not in ("", "0"):
@@ -63,6 +65,50 @@ def _start_thread_pool(threads: int) -> None:
     if "NUMBA_NUM_THREADS" not in os.environ and not parallel._is_initialized:
         numba.config.NUMBA_NUM_THREADS = parallel.NUM_THREADS = max(1, threads)
     parallel._launch_threads()
+
+
+class _CompileClock:
+    """Seconds this process has spent compiling numba functions (the outermost ``numba:compile``
+    events: a kernel compiling the ones it calls counts once). Installed when numba is imported
+    here; a kernel loaded from numba's disk cache is not a compile."""
+
+    def __init__(self):
+        self.seconds, self._depth, self._start = 0.0, {}, {}
+        self._lock = threading.Lock()
+
+    def on_start(self, event) -> None:
+        key = threading.get_ident()
+        with self._lock:
+            depth = self._depth.get(key, 0)
+            if depth == 0:
+                self._start[key] = time.perf_counter()
+            self._depth[key] = depth + 1
+
+    def on_end(self, event) -> None:
+        key = threading.get_ident()
+        with self._lock:
+            self._depth[key] = self._depth.get(key, 1) - 1
+            if self._depth[key] == 0 and key in self._start:
+                self.seconds += time.perf_counter() - self._start.pop(key)
+
+
+def compile_seconds() -> float:
+    """Seconds spent compiling numba code in this process so far (0 before numba is used here):
+    what the timings of a round subtract, so a fresh machine's first round does not count its
+    one-time compilation as selection or training time."""
+    clock = _STATE.get("clock")
+    if clock is None:
+        try:
+            import numba.core.event as events
+        except ImportError:
+            return 0.0
+        clock = _CompileClock()
+        listener = type("CompileListener", (events.Listener,), {
+            "on_start": lambda self, event: clock.on_start(event),
+            "on_end": lambda self, event: clock.on_end(event)})()
+        events.register("numba:compile", listener)
+        _STATE["clock"] = clock
+    return clock.seconds
 
 
 def load_error() -> str | None:
