@@ -46,3 +46,15 @@ def test_plan_with_a_bad_key_is_a_config_error_with_exit_2(tmp_path):
     proc = run_plan(f"output_dir={tmp_path}", "protocol.kind=local")
     assert proc.returncode == 2
     assert "config error" in proc.stderr and "protocol kind must be one of" in proc.stderr
+
+
+def test_a_first_jobs_one_time_compilation_is_not_in_the_estimate():
+    from pipeline.experiment.plan import _durations
+    records = pd.DataFrame([{"config_hash": "a", "kind": "final", "status": "FINISHED", "dataset": "d",
+                             "scene": "s", "method": "gopre", "setting": "", "wall_seconds": 150.0,
+                             "job_compile_seconds": 30.0},
+                            {"config_hash": "b", "kind": "final", "status": "FINISHED", "dataset": "d",
+                             "scene": "s", "method": "random", "setting": "", "wall_seconds": 40.0}])
+    durations = _durations(records).set_index("method")["wall_seconds"]
+    assert durations["gopre"] == 120.0  # the fresh machine's compile left out
+    assert durations["random"] == 40.0  # a record from before the column: as it was

@@ -26,12 +26,16 @@ def _durations(records: pd.DataFrame) -> pd.DataFrame:
     if records.empty or "wall_seconds" not in records:
         return pd.DataFrame(columns=["dataset", "scene", "method", "setting", "wall_seconds"])
     final = records[(records["kind"] == "final") & (records["status"] == "FINISHED")]
+    if "job_compile_seconds" in final:  # one-time compilation out (absent in older records)
+        compiled = pd.to_numeric(final["job_compile_seconds"], errors="coerce").fillna(0.0)
+        final = final.assign(wall_seconds=final["wall_seconds"] - compiled)
     return final[["dataset", "scene", "method", "setting", "wall_seconds"]].dropna(subset=["wall_seconds"])
 
 
 def estimate(job: Job, durations: pd.DataFrame) -> float | None:
-    """Median wall time of finished jobs of the same kind: same dataset, scene, method and setting
-    (any seed); else the same dataset and method; else None."""
+    """Median wall time of finished jobs of the same kind (without the one-time kernel compilation
+    a fresh machine's first jobs paid: ``job_compile_seconds``): same dataset, scene, method and
+    setting (any seed); else the same dataset and method; else None."""
     for keys in (("dataset", "scene", "method", "setting"), ("dataset", "method")):
         same = durations
         for k in keys:

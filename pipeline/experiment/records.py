@@ -113,6 +113,8 @@ def worker_columns(outcome: JobOutcome) -> dict:
     return {"host": w.get("host"), "node": w.get("node"), "worker_code_version": w.get("code_version"),
             "packages": w.get("packages"), "packages_locked": w.get("locked"), "cpu": w.get("cpu"),
             "starts": w.get("starts"),
+            # numba's one-time compilation in this job (training and selection), seconds of wall_seconds
+            "job_compile_seconds": w.get("compile_seconds"),
             "elapsed_seconds": round(w["ended"] - w["first_started"], 2) if "ended" in w else None}
 
 

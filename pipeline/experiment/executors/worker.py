@@ -24,6 +24,7 @@ from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.outcome import JobOutcome
 from pipeline.experiment.provenance import code_version, environment
 from pipeline.experiment.spec import Job
+from pipeline.splat.compiled import compile_seconds
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,7 @@ def run_here(job: Job, scene: Scene | None = None, report: Report | None = None,
     folder = Path(job.execution.job_dir)
     starts = record_start(folder)
     problem = identity_problem(expected)
+    compiling = compile_seconds()
     if problem is not None:
         outcome = JobOutcome.failed(1, [problem])
     else:
@@ -106,5 +108,5 @@ def run_here(job: Job, scene: Scene | None = None, report: Report | None = None,
     outcome.worker = {"host": starts[-1]["host"], "node": starts[-1]["node"], "pid": os.getpid(),
                       "code_version": code_version(), "packages": env.packages, "locked": env.locked,
                       "cpu": env.cpu, "starts": len(starts), "first_started": starts[0]["started"],
-                      "ended": time.time()}
+                      "ended": time.time(), "compile_seconds": round(compile_seconds() - compiling, 3)}
     return outcome
