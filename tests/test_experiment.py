@@ -452,12 +452,14 @@ def test_round_progress_reaches_the_driver_and_mlflow_while_jobs_run(executor, b
     assert summary.finished == 2
     lines = capsys.readouterr().out.splitlines()
     for method in ("random", "coverage"):
-        mine = [ln for ln in lines if f"] {method} on " in ln and " views, PSNR " in ln]
+        mine = [ln for ln in lines if f"] {method} on " in ln and " views, curve PSNR " in ln]
         # budget 3 from 2 views: one selection round, then the final evaluation; one line each
         assert [ln.split(": ", 1)[1].split(",")[0] for ln in mine] == ["round 1/2", "final"], lines
         assert ", 2 views, " in mine[0] and ", 3 views, " in mine[1]
         done = next(i for i, ln in enumerate(lines) if f"| {method} on " in ln)
         assert lines.index(mine[-1]) < done  # heard before the job's end line
+        assert "curve PSNR" in mine[0] and "(on 6 test views)" in mine[0]  # which PSNR each line is
+        assert "FINISHED test PSNR " in lines[done] and "(all 6 test views)" in lines[done]
     logged = (out / "sweep.log").read_text().splitlines()  # the same lines, timestamped
     assert [ln.split(" INFO ", 1)[1] for ln in logged if " INFO [debug]" in ln] == \
         [ln for ln in lines if ln.startswith("[debug]")]
@@ -467,6 +469,8 @@ def test_round_progress_reaches_the_driver_and_mlflow_while_jobs_run(executor, b
     for run in client.search_runs([exp.experiment_id], "tags.config_hash != ''"):
         steps = sorted(m.step for m in client.get_metric_history(run.info.run_id, "test_psnr"))
         assert steps == [2, 3] and run.info.status == "FINISHED"  # logged live once, not twice
+        wall = RecordsFile(out).frame.query("kind == 'final' and run_id == @run.info.run_id")["wall_seconds"].iloc[0]
+        assert (run.info.end_time - run.info.start_time) / 1000 >= wall  # the run spans the job, not its rounds
 
 
 def test_a_degraded_final_model_is_flagged_in_records_mlflow_and_output(base, capsys, monkeypatch):

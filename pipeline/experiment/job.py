@@ -20,6 +20,8 @@ from typing import Callable
 import torch
 
 from pipeline.active import episode_plan, run_episode
+from pipeline.active.episode import uniform_subset
+from pipeline.data.protocols import build_protocol
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
@@ -109,7 +111,9 @@ def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.T
 
 def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = job.episode
+    started = time.time()  # the MLflow run of the job starts here, not at its first round
     rounds = len(episode_plan(scene, cfg).round_views) + 1
+    curve_views = len(uniform_subset(build_protocol(scene, cfg.protocol).test_ids, cfg.curve_test_views))
     pending_images: dict[int, dict[str, bytes]] = {}
 
     def on_selection(ep, rec):
@@ -124,6 +128,7 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
         if report is not None:
             message = RoundMessage.of(rec, rounds)
+            message.job_started, message.curve_views = started, curve_views
             if rec.round in pending_images:
                 message.images = pending_images.pop(rec.round)
             report(message)

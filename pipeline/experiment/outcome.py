@@ -98,6 +98,8 @@ class RoundMessage:
     record: RoundRecord
     rounds: int
     images: dict[str, bytes] = field(default_factory=dict)
+    job_started: float | None = None  # when the job (this attempt) began, seconds since the epoch
+    curve_views: int | None = None    # how many test views the round's (curve) PSNR is over
 
     @classmethod
     def of(cls, record: RoundRecord, rounds: int) -> "RoundMessage":
@@ -115,8 +117,10 @@ class RoundMessage:
         return round(self.record.train_seconds + self.record.selection_seconds, 2)
 
     def to_dict(self) -> dict:
-        return {"record": asdict(self.record), "rounds": self.rounds, "images": dict(self.images)}
+        return {"record": asdict(self.record), "rounds": self.rounds, "images": dict(self.images),
+                "job_started": self.job_started, "curve_views": self.curve_views}
 
     @classmethod
     def from_dict(cls, data: dict) -> "RoundMessage":
-        return cls(RoundRecord.from_dict(data["record"]), int(data["rounds"]), dict(data.get("images") or {}))
+        return cls(RoundRecord.from_dict(data["record"]), int(data["rounds"]), dict(data.get("images") or {}),
+                   data.get("job_started"), data.get("curve_views"))

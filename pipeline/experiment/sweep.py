@@ -74,8 +74,9 @@ class Progress:
         """One line per finished round of a running job."""
         rec = message.record
         what = "final" if message.final else f"round {rec.round + 1}/{message.rounds}"
+        on = f"{message.curve_views} test views" if message.curve_views else "the curve's test views"
         LOG.info(f"[{self.name}] {job.label}: {what}, {rec.num_views} views, "
-                 f"PSNR {rec.test_psnr:.2f} dB, {message.seconds:.0f} s")
+                 f"curve PSNR {rec.test_psnr:.2f} dB (on {on}), {message.seconds:.0f} s")
 
     def degraded(self, job: Job, outcome: JobOutcome) -> None:
         final = outcome.final
@@ -91,7 +92,8 @@ def _headline(outcome: JobOutcome, job: Job) -> str:
         path = Path(job.execution.job_dir) / "artifacts" / TRACEBACK_ARTIFACT
         return f"after {outcome.attempts} attempt(s): {last[:300]} (traceback: {path})"
     if outcome.final is not None:
-        return f"PSNR {outcome.final.psnr:.2f} dB in {outcome.seconds or 0:.0f} s"
+        return (f"test PSNR {outcome.final.psnr:.2f} dB (all {outcome.final.test_views} test views) in "
+                f"{outcome.seconds or 0:.0f} s")
     return f"AUSE {json.dumps({k: round(v, 3) for k, v in outcome.uncertainty.ause.items()})}"
 
 

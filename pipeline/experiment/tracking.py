@@ -219,21 +219,22 @@ class MlflowTracker:
         for i in range(0, len(items), 1000):
             self.client.log_batch(run_id, metrics=items[i:i + 1000])
 
-    def _child_run(self, job: Job) -> str:
-        """A new child run for ``job``, with its tags and params."""
+    def _child_run(self, job: Job, started: float | None = None) -> str:
+        """A new child run for ``job``, with its tags and params, starting when the job started
+        (``started``, seconds since the epoch; None: now)."""
         tags = {k: str(getattr(job, k)) for k in TAGS}
         tags.update({"protocol": job.protocol["kind"], "mlflow.parentRunId": self.parent or "",
                      "output_dir": self.output_dir})
         tags.update(plugin_tags(job))
         run = self.client.create_run(self.experiment_id, run_name=f"{job.method} {job.scene} s{job.seed}",
-                                     tags=tags)
+                                     tags=tags, start_time=int(started * 1000) if started else None)
         self._log_params(run.info.run_id, job_params(job))
         return run.info.run_id
 
     def log_round(self, job: Job, message: RoundMessage) -> None:
         """A round of a running job: its metrics at step = views, in the job's (open) child run."""
         if job.config_hash not in self.live:
-            self.live[job.config_hash] = (self._child_run(job), set())
+            self.live[job.config_hash] = (self._child_run(job, message.job_started), set())
         run_id, logged = self.live[job.config_hash]
         self._log_metrics(run_id, round_metrics(message.record))
         logged.add(message.record.num_views)
@@ -245,7 +246,8 @@ class MlflowTracker:
 
     def log_job(self, job: Job, outcome: JobOutcome) -> str:
         """Complete the job's child run (the live one, else a new one) with its final state."""
-        run_id, logged = self.live.pop(job.config_hash, None) or (self._child_run(job), set())
+        run_id, logged = (self.live.pop(job.config_hash, None)
+                          or (self._child_run(job, outcome.worker.get("first_started")), set()))
         tags = {"attempts": str(outcome.attempts)}
         w = outcome.worker  # where and under what it ran (executors.worker), as the records have it
         tags.update({f"worker.{k}": str(w[k]) for k in ("host", "node", "code_version", "packages", "locked",
