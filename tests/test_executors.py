@@ -329,3 +329,22 @@ def test_a_deterministic_failure_is_not_retried(error, tmp_path, monkeypatch):
     outcome = job_module.run_with_retries(job)
     assert not outcome.finished and outcome.attempts == 1 and len(outcome.errors) == 1
     assert "deterministic: not retried" in (Path(job.execution.job_dir) / "log.txt").read_text()
+
+
+def test_a_missing_kernel_cache_is_announced_and_compiled_before_any_job(tmp_path, monkeypatch, capsys):
+    """A fresh clone spent 137-141 s silent after the launch: the driver now says it compiles the
+    kernels, does it before any job (no job's timings carry it) and says how long it took."""
+    from pipeline.experiment import warmup
+    from pipeline.experiment.sweep import run_sweep
+    monkeypatch.setattr(warmup, "kernels_cached", lambda: False)  # as on a fresh machine
+    summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local",
+                                  "tracking=none", f"output_dir={tmp_path}"]))
+    lines = capsys.readouterr().out.splitlines()
+    start = next(i for i, ln in enumerate(lines) if "compiling the CPU kernels for this machine, once" in ln)
+    done = next(i for i, ln in enumerate(lines) if "compiled the CPU kernels in " in ln)
+    first_job = next(i for i, ln in enumerate(lines) if "random on generated" in ln)
+    assert start < done < first_job and summary.finished == 1
+    monkeypatch.setattr(warmup, "kernels_cached", lambda: True)
+    run_sweep(composed(["experiment=debug", *TINY, "method=[coverage]", "executor=local", "tracking=none",
+                        f"output_dir={tmp_path / 'again'}"]))
+    assert "compiling the CPU kernels" not in capsys.readouterr().out  # cached: nothing said, nothing run

@@ -28,6 +28,7 @@ from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
+from pipeline.experiment.warmup import compile_kernels
 from pipeline.splat import ply
 from pipeline.experiment.spec import Job
 
@@ -206,6 +207,14 @@ def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: P
                  f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).")
 
 
+def compiles_here(resolved: dict, jobs: list[Job]) -> bool:
+    """The jobs run on this machine's CPU (local, or a Ray this launch starts): compile the kernels
+    here first when their cache is missing. Jobs on a cluster compile on their nodes."""
+    executor = resolved["executor"]
+    local = executor.get("kind") == "local" or (executor.get("kind") == "ray" and not executor.get("address"))
+    return local and any(j.execution.device == "cpu" for j in jobs)
+
+
 def execution_order(jobs: list[Job]) -> list[Job]:
     """Seed by seed (then the config's order): a sweep stopped early has every method of the
     first seeds, which is what paired comparisons need, rather than some methods on all seeds."""
@@ -255,6 +264,8 @@ class SweepRun:
 
     def run(self, stale_driver: bool = False) -> SweepSummary:
         scenes = self.prepare(stale_driver)
+        if self.todo and compiles_here(self.resolved, self.todo):
+            compile_kernels(lambda line: LOG.info(f"[{self.name}] {line}"))
         if self.todo:
             self.progress = Progress(self.name, len(self.todo), 1)
             try:
