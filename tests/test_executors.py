@@ -348,3 +348,23 @@ def test_a_missing_kernel_cache_is_announced_and_compiled_before_any_job(tmp_pat
     run_sweep(composed(["experiment=debug", *TINY, "method=[coverage]", "executor=local", "tracking=none",
                         f"output_dir={tmp_path / 'again'}"]))
     assert "compiling the CPU kernels" not in capsys.readouterr().out  # cached: nothing said, nothing run
+
+
+def test_the_eta_comes_from_the_first_round_before_any_job_finishes(capsys):
+    """No ETA until the first job finished (minutes at the paper preset): the rounds give one."""
+    from pipeline.active.results import RoundRecord
+    from pipeline.experiment.outcome import RoundMessage
+    from pipeline.experiment.sweep import Progress
+    jobs = [SimpleNamespace(config_hash=h, label=f"job {h}") for h in "abcd"]
+    progress = Progress("s", total=4, slots=2)
+
+    def heard(job, round_, seconds):
+        record = RoundRecord(round=round_, num_views=2 + round_, iteration=0, test_psnr=20.0, test_ssim=0.5,
+                             num_gaussians=10, train_seconds=seconds, selection_seconds=0.0)
+        progress.round(job, RoundMessage(record, rounds=5, curve_views=8))
+    heard(jobs[0], 0, 60.0)
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    # 4 jobs x 5 rounds, 1 heard: 19 rounds of 60 s on 2 slots = 9.5 min
+    assert line.endswith("| sweep ETA 9.5 min (from the rounds so far)"), line
+    heard(jobs[1], 0, 120.0)  # mean 90 s; 18 rounds left on 2 slots: 13.5 min
+    assert capsys.readouterr().out.strip().endswith("sweep ETA 13.5 min (from the rounds so far)")

@@ -52,14 +52,32 @@ class SweepSummary:
 
 
 class Progress:
-    """Jobs done / running / failed and an ETA, one line per finished job."""
+    """Jobs done / running / failed and an ETA, one line per finished job and per finished round.
+    Before any job has finished the ETA comes from the rounds heard so far: the mean seconds of a
+    round times the rounds left (each job's count of rounds as its messages say, the typical count
+    for jobs not yet heard from), over the slots."""
 
     def __init__(self, name: str, total: int, slots: int):
         self.name, self.total, self.slots = name, total, max(1, slots)
         self.done = self.failed = 0
         self.job_seconds: list[float] = []
+        self.round_seconds: list[float] = []
+        self.rounds_of: dict[str, int] = {}     # config hash -> rounds the job has (its messages say)
+        self.rounds_heard: dict[str, int] = {}  # config hash -> rounds heard so far
+        self.finished_jobs: set[str] = set()
+
+    def rounds_eta(self) -> float | None:
+        """Seconds left from the rounds heard so far (None before the first round)."""
+        if not self.round_seconds or not self.rounds_of:
+            return None
+        typical = sorted(self.rounds_of.values())[len(self.rounds_of) // 2]
+        unheard = self.total - len(self.finished_jobs) - len(set(self.rounds_of) - self.finished_jobs)
+        left = sum(max(0, n - self.rounds_heard.get(h, 0)) for h, n in self.rounds_of.items()
+                   if h not in self.finished_jobs) + max(0, unheard) * typical
+        return sum(self.round_seconds) / len(self.round_seconds) * left / self.slots
 
     def update(self, job: Job, outcome: JobOutcome) -> None:
+        self.finished_jobs.add(job.config_hash)
         self.done += 1
         self.failed += not outcome.finished
         left = self.total - self.done
@@ -74,10 +92,15 @@ class Progress:
     def round(self, job: Job, message: RoundMessage) -> None:
         """One line per finished round of a running job."""
         rec = message.record
+        self.round_seconds.append(message.seconds)
+        self.rounds_of[job.config_hash] = message.rounds
+        self.rounds_heard[job.config_hash] = rec.round + 1
+        eta = self.rounds_eta()
         what = "final" if message.final else f"round {rec.round + 1}/{message.rounds}"
         on = f"{message.curve_views} test views" if message.curve_views else "the curve's test views"
         LOG.info(f"[{self.name}] {job.label}: {what}, {rec.num_views} views, "
-                 f"curve PSNR {rec.test_psnr:.2f} dB (on {on}), {message.seconds:.0f} s")
+                 f"curve PSNR {rec.test_psnr:.2f} dB (on {on}), {message.seconds:.0f} s"
+                 + (f" | sweep ETA {eta / 60:.1f} min (from the rounds so far)" if eta is not None else ""))
 
     def degraded(self, job: Job, outcome: JobOutcome) -> None:
         final = outcome.final
@@ -267,7 +290,7 @@ class SweepRun:
         if self.todo and compiles_here(self.resolved, self.todo):
             compile_kernels(lambda line: LOG.info(f"[{self.name}] {line}"))
         if self.todo:
-            self.progress = Progress(self.name, len(self.todo), 1)
+            self.progress = Progress(self.name, len(self.todo), getattr(self.executor, "slots", 1))
             try:
                 with critical():
                     self.tracker.start(self.resolved, len(self.todo))
@@ -324,6 +347,7 @@ class SweepRun:
             self.track_round(job, message)
 
     def track_round(self, job: Job, message: RoundMessage) -> None:
+        self.progress.slots = max(1, getattr(self.executor, "slots", 1))  # known once the executor started
         self.progress.round(job, message)
         try:
             self.tracker.log_round(job, message)
