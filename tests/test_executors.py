@@ -116,9 +116,15 @@ def test_the_lock_pins_every_declared_dependency_and_make_env_installs_it():
 
 def test_round_progress_survives_a_lost_inbox_and_posting_never_blocks(ray_session, capsys):
     from pipeline.experiment.executors.ray_cluster import RoundChannel
+    from pipeline.experiment.outcome import StepProgress
     heard = []
-    channel = RoundChannel(ray_session, [], lambda job, message: heard.append(message))
+    channel = RoundChannel(ray_session, [SimpleNamespace(config_hash="h")], lambda job, message: heard.append(message))
     assert ray_session.get(channel.inbox.node.remote()) == ray_session.get_runtime_context().get_node_id()  # on the driver's node
+    step = StepProgress(0, 2, 5, 10, 1.0)
+    ray_session.get(channel.inbox.post.remote("h", step.to_dict()))
+    channel.drain()
+    assert heard == [step]  # progress inside a round travels the same way
+    heard.clear()
 
     @ray_session.remote(num_cpus=0)
     def post(inbox):
@@ -368,3 +374,20 @@ def test_the_eta_comes_from_the_first_round_before_any_job_finishes(capsys):
     assert line.endswith("| sweep ETA 9.5 min (from the rounds so far)"), line
     heard(jobs[1], 0, 120.0)  # mean 90 s; 18 rounds left on 2 slots: 13.5 min
     assert capsys.readouterr().out.strip().endswith("sweep ETA 13.5 min (from the rounds so far)")
+
+
+def test_progress_inside_a_round_reaches_the_console_and_the_job_log(tmp_path, capsys):
+    """At the paper preset a round is thousands of steps: a line at most every job.progress_seconds."""
+    from pipeline.experiment.executors.slurm import message_of, message_line
+    from pipeline.experiment.outcome import StepProgress
+    from pipeline.experiment.sweep import run_sweep
+    run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "splat.iterations=1200",
+                        "job.progress_seconds=0.3", "executor=local", "tracking=none", f"output_dir={tmp_path}"]))
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "training step " in ln]
+    assert lines and all("random on generated" in ln for ln in lines), lines
+    log = next(tmp_path.glob("jobs/*/log.txt")).read_text()
+    assert log.count("training step ") == len(lines)
+    step = StepProgress(1, 3, 40, 120, 5.0)
+    assert message_of(message_line(step)) == step  # the SLURM and Ray channels carry it as is
+    assert step.text() == "round 2/3: training step 40/120 (5 s into the job)"
+    assert StepProgress(2, 3, 1, 9, 0.0).text().startswith("final training: ")

@@ -107,6 +107,7 @@ class Episode:
     def __init__(self, scene: Scene, cfg: EpisodeConfig, device: str | torch.device | None = None,
                  folder: Path | None = None):
         self.scene, self.cfg, self.folder = scene, cfg, folder
+        self.on_step = None  # hears each training step (run_episode's on_step)
         self.device = torch.device(device or "cpu")
         self.background = scene.background.to(self.device)
         self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
@@ -203,7 +204,7 @@ class Episode:
     def train(self, iterations: int, progress: bool) -> float:
         start = time.perf_counter()
         self.trainer.train(max(iterations, 0), progress=progress,
-                           desc=f"{self.cfg.strategy} {len(self.taken)} views")
+                           desc=f"{self.cfg.strategy} {len(self.taken)} views", on_step=self.on_step)
         return time.perf_counter() - start
 
     def evaluate_curve(self) -> dict:
@@ -343,16 +344,20 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
                 on_round: Callable[[RoundRecord], None] | None = None,
                 progress: bool = False, device: str | torch.device | None = None,
                 on_selection: Callable[["Episode", RoundRecord], None] | None = None,
-                on_resume: Callable[[int], None] | None = None) -> EpisodeResult:
+                on_resume: Callable[[int], None] | None = None,
+                on_step: Callable[[int, int, int], None] | None = None) -> EpisodeResult:
     """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
     checkpointed), including the final one; it may raise to stop the episode. ``device``: where
     the model and images live (default CPU); records are identical in form on every device.
     ``on_selection(episode, record)`` sees the episode after each pick, before the post-selection
     policy changes the model (it must not change the episode). ``on_resume(rounds)`` hears how many
-    finished rounds a checkpoint restored."""
+    finished rounds a checkpoint restored. ``on_step(round, done, total)`` hears every training
+    step of a round (``round`` counts from 0; the final training is the last round)."""
     start = time.perf_counter()
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
     ep = Episode(scene, cfg, device, folder)
+    if on_step is not None:
+        ep.on_step = lambda done, total, info: on_step(len(ep.records), done, total)
     key = fingerprint(ep.fingerprint_data())
     state = load_checkpoint(folder, key)
     if state is not None:

@@ -193,6 +193,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                                 # images only go to MLflow: none to make without it
                                 "round_images": int(job_cfg.get("round_images") or 0) if tracked else 0,
                                 "round_models": bool(job_cfg.get("round_models") or False),
+                                "progress_seconds": float(job_cfg.get("progress_seconds", 30)),
                                 "job_dir": str(SweepFolder(output_dir).job(job["config_hash"]).path)}
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)
             job["code_version"] = code_version()

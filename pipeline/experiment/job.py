@@ -29,7 +29,7 @@ from pipeline.eval.images import colormap, png_bytes
 from pipeline.experiment.build import uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
-from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage
+from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress
 from pipeline.fisher.variance import variance_maps
 from pipeline.splat import ply, render
 from pipeline.experiment.spec import Job
@@ -68,7 +68,7 @@ def _log(folder: Path, line: str) -> None:
         handler.flush()
 
 
-Report = Callable[[RoundMessage], None]
+Report = Callable[[RoundMessage | StepProgress], None]  # rounds, and progress inside a round
 
 
 
@@ -134,8 +134,19 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
             report(message)
     def on_resume(done: int):  # a retried, interrupted or relaunched job continues where it stopped
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
+    said = [time.perf_counter()]
+
+    def on_step(round_: int, done: int, total: int):  # inside a round: every progress_seconds
+        now = time.perf_counter()
+        if now - said[0] < job.execution.progress_seconds or done == total:
+            return
+        said[0] = now
+        step = StepProgress(round_, rounds, done, total, round(time.time() - started, 1))
+        _log(folder, step.text())
+        if report is not None:
+            report(step)
     result = run_episode(scene, cfg, JobFolder(folder).checkpoint_dir, on_round=on_round, on_selection=on_selection,
-                         device=job.execution.device, on_resume=on_resume)
+                         device=job.execution.device, on_resume=on_resume, on_step=on_step)
     if result.final.degraded:
         _log(folder, f"warning: final PSNR {result.final.curve_psnr_drop:.2f} dB below the last "
                      "round's on the same views (degraded)")

@@ -89,6 +89,33 @@ class JobOutcome:
 
 
 @dataclass
+class StepProgress:
+    """Progress inside a round of a running job, said every ``job.progress_seconds``: the round
+    (from 0; the final training is the last), its training steps done of its total, and the seconds
+    since the job (this attempt) began. Travels as ``to_dict()`` beside the round messages."""
+
+    round: int
+    rounds: int
+    done: int
+    total: int
+    seconds: float
+
+    def text(self) -> str:
+        what = "final training" if self.round + 1 == self.rounds else f"round {self.round + 1}/{self.rounds}"
+        return f"{what}: training step {self.done}/{self.total} ({self.seconds:.0f} s into the job)"
+
+    def to_dict(self) -> dict:
+        return {"progress": asdict(self)}
+
+
+def message_from_dict(data: dict) -> "RoundMessage | StepProgress":
+    """A message from a running job, either kind, from its ``to_dict()``."""
+    if "progress" in data:
+        return StepProgress(**data["progress"])
+    return RoundMessage.from_dict(data)
+
+
+@dataclass
 class RoundMessage:
     """What the driver hears of one finished round of a running job: the round's record (the
     per-candidate scores and probe ids left out), how many rounds the job has (selection rounds +

@@ -26,6 +26,7 @@ class Execution:
     round_images: int
     round_models: bool
     job_dir: str
+    progress_seconds: float = 30.0  # a training-progress line inside a round at most this often
 
 
 @dataclass

@@ -24,7 +24,7 @@ from pipeline.experiment.executors import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.lock import SweepLock, SweepLocked
-from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome, RoundMessage
+from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome, RoundMessage, StepProgress
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
@@ -342,7 +342,10 @@ class SweepRun:
         self.progress.slots = getattr(self.executor, "slots", 1)
         self.progress.update(job, outcome)
 
-    def on_round(self, job: Job, message: RoundMessage) -> None:
+    def on_round(self, job: Job, message: RoundMessage | StepProgress) -> None:
+        if isinstance(message, StepProgress):  # inside a round: a console line, nothing tracked
+            LOG.info(f"[{self.name}] {job.label}: {message.text()}")
+            return
         with critical():
             self.track_round(job, message)
 

@@ -11,6 +11,8 @@ trainer has a ``nonfinite_dir``, and more than ``NONFINITE_STEP_LIMIT`` such ste
 
 from __future__ import annotations
 
+from typing import Callable
+
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -267,12 +269,16 @@ class Trainer:
         if self.step < dcfg.stop and periodic and not late:
             self.reset_opacity()
 
-    def train(self, iterations: int, progress: bool = False, desc: str = "fit") -> StepInfo | None:
-        """Run ``iterations`` steps; shows a progress bar (loss, PSNR, #Gaussians) if asked."""
+    def train(self, iterations: int, progress: bool = False, desc: str = "fit",
+              on_step: Callable[[int, int, StepInfo], None] | None = None) -> StepInfo | None:
+        """Run ``iterations`` steps; shows a progress bar (loss, PSNR, #Gaussians) if asked;
+        ``on_step(done, iterations, info)`` hears every step (it decides how often to say so)."""
         info = None
         bar = tqdm(total=iterations, desc=desc, disable=not progress, leave=False, mininterval=1.0)
-        for _ in range(iterations):
+        for done in range(1, iterations + 1):
             info = self.train_step()
+            if on_step is not None:
+                on_step(done, iterations, info)
             if info.step % 10 == 0:
                 bar.set_postfix(loss=f"{info.loss:.4f}", psnr=f"{info.psnr:.2f}", n=info.num_gaussians,
                                 refresh=False)

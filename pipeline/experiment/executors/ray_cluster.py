@@ -30,7 +30,7 @@ from pipeline.experiment.executors.base import OnDone, OnRound, scene_key
 from pipeline.experiment.executors.worker import DriverIdentity, identity_problem, run_here
 from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_handlers,
                                            install_stop_handlers, restore_handlers)
-from pipeline.experiment.outcome import JobOutcome, RoundMessage
+from pipeline.experiment.outcome import JobOutcome, RoundMessage, message_from_dict
 from pipeline.experiment.spec import Job
 
 POLL_SECONDS = 0.5  # how often the driver looks for round messages while jobs run
@@ -101,7 +101,7 @@ class RoundChannel:
                               "go on, and each job's rounds arrive with its result")
             return
         for config_hash, message in messages:
-            self.on_round(self.jobs[config_hash], RoundMessage.from_dict(message))
+            self.on_round(self.jobs[config_hash], message_from_dict(message))
 
     def close(self) -> None:
         try:

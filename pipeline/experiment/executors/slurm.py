@@ -25,7 +25,7 @@ from pipeline.experiment.executors.base import OnDone, OnRound
 from pipeline.experiment.executors.worker import DriverIdentity, run_here
 from pipeline.experiment.interrupt import SweepInterrupted, critical
 from pipeline.experiment.layout import JobFolder
-from pipeline.experiment.outcome import JobOutcome, RoundMessage
+from pipeline.experiment.outcome import JobOutcome, RoundMessage, StepProgress, message_from_dict
 from pipeline.experiment.spec import Job
 
 POLL_SECONDS = 2.0
@@ -39,16 +39,18 @@ def _checkpointable():
     return Checkpointable
 
 
-def message_line(message: RoundMessage) -> str:
+def message_line(message: RoundMessage | StepProgress) -> str:
     data = message.to_dict()
-    data["images"] = {k: base64.b64encode(v).decode() for k, v in data["images"].items()}
+    if "images" in data:
+        data["images"] = {k: base64.b64encode(v).decode() for k, v in data["images"].items()}
     return json.dumps(data)
 
 
-def message_of(line: str) -> RoundMessage:
+def message_of(line: str) -> RoundMessage | StepProgress:
     data = json.loads(line)
-    data["images"] = {k: base64.b64decode(v) for k, v in data.get("images", {}).items()}
-    return RoundMessage.from_dict(data)
+    if "images" in data:
+        data["images"] = {k: base64.b64decode(v) for k, v in data["images"].items()}
+    return message_from_dict(data)
 
 
 class SlurmJobRunner(_checkpointable()):
