@@ -391,3 +391,18 @@ def test_progress_inside_a_round_reaches_the_console_and_the_job_log(tmp_path, c
     assert message_of(message_line(step)) == step  # the SLURM and Ray channels carry it as is
     assert step.text() == "round 2/3: training step 40/120 (5 s into the job)"
     assert StepProgress(2, 3, 1, 9, 0.0).text().startswith("final training: ")
+
+
+def test_a_request_no_node_can_hold_is_refused_instead_of_waiting_forever(ray_session, tmp_path):
+    """job.threads=1000 under Ray hung forever with no message (issue 47)."""
+    from pipeline.experiment.executors.ray_cluster import RayExecutor, infeasible
+    jobs = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", "job.threads=1000",
+                                 f"output_dir={tmp_path}"]))
+    with pytest.raises(ConfigError, match=r"job.threads=1000: no node of the cluster has that many CPUs "
+                                          r"\(the largest has 2\)"):
+        RayExecutor(output_dir=tmp_path, gpus_per_job=0).check_nodes(ray_session, {}, DriverIdentity.here(), jobs)
+    nodes = [{"Resources": {"CPU": 8, "GPU": 1}}, {"Resources": {"CPU": 2}}]
+    small = [SimpleNamespace(execution=SimpleNamespace(threads=8))]
+    assert infeasible(small, nodes, 1) == []
+    assert infeasible(small, nodes, 2) == ["executor.gpus_per_job=2: no node of the cluster has that many GPUs "
+                                           "(the largest has 1); Ray would wait for one forever"]

@@ -125,6 +125,22 @@ def node_probe(paths: list[str], token_file: str, token: str, expected: dict) ->
             "identity": identity_problem(DriverIdentity(**expected))}
 
 
+def infeasible(jobs: list[Job], nodes: list[dict], gpus_per_job: float) -> list[str]:
+    """One line per resource request no alive node can ever hold (Ray would wait for it forever,
+    silently): a job's ``job.threads`` CPUs, or ``executor.gpus_per_job`` GPUs."""
+    most_cpus = max((n.get("Resources", {}).get("CPU", 0) for n in nodes), default=0)
+    most_gpus = max((n.get("Resources", {}).get("GPU", 0) for n in nodes), default=0)
+    problems = []
+    threads = max((j.execution.threads for j in jobs), default=0)
+    if threads > most_cpus:
+        problems.append(f"job.threads={threads}: no node of the cluster has that many CPUs (the largest has "
+                        f"{most_cpus:g}); Ray would wait for one forever")
+    if gpus_per_job > most_gpus:
+        problems.append(f"executor.gpus_per_job={gpus_per_job:g}: no node of the cluster has that many GPUs (the "
+                        f"largest has {most_gpus:g}); Ray would wait for one forever")
+    return problems
+
+
 def scene_files(scenes: dict[str, Scene]) -> list[str]:
     """Every file the scenes' images are read from (each node must read them)."""
     files = set()
@@ -179,8 +195,14 @@ class RayExecutor:
                      log_to_driver=False)
         return ray, True
 
-    def check_nodes(self, ray, scenes: dict[str, Scene], expected: DriverIdentity) -> None:
-        """One probe per alive node with CPUs; a ConfigError naming every node that cannot run jobs."""
+    def check_nodes(self, ray, scenes: dict[str, Scene], expected: DriverIdentity,
+                    jobs: list[Job] | None = None) -> None:
+        """One probe per alive node with CPUs; a ConfigError naming every node that cannot run jobs,
+        and every resource request no node can hold."""
+        too_big = infeasible(jobs or [], [n for n in ray.nodes() if n.get("Alive")], self.gpus_per_job)
+        if too_big:
+            raise ConfigError(f"{len(too_big)} problem(s) with the Ray cluster's resources, no job was started:\n  "
+                              + "\n  ".join(too_big))
         if self.output_dir is None:
             return
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -224,7 +246,7 @@ class RayExecutor:
             with critical():
                 ray, started_here = self._start()
                 install_stop_handlers()  # after ray.init, which installs its own SIGTERM handler
-                self.check_nodes(ray, scenes, expected)
+                self.check_nodes(ray, scenes, expected, jobs)
                 channel = RoundChannel(ray, jobs, on_round) if on_round is not None else None
                 refs = {key: ray.put(scene) for key, scene in scenes.items()}  # once per scene
             cpus = ray.cluster_resources().get("CPU", 1)
