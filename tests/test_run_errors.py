@@ -57,3 +57,24 @@ def test_multirun_is_refused_with_the_one_sweep_syntax_and_help_is_ours(tmp_path
                    "method: activenerf, cover, coverage"):
         assert needle in helped.stdout, needle
 
+
+
+def test_an_impossible_output_dir_is_one_config_error_and_a_bad_port_one_line(tmp_path):
+    """Both were tracebacks (issue 47); a bad --port also left a process that never exited. (The
+    command line still fails earlier, in Hydra's own run folder under output_dir: left open.)"""
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.cli.run import CONF_DIR
+    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.sweep import run_sweep
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", ["experiment=debug", f"output_dir={blocker / 'out'}"])
+    with pytest.raises(ConfigError, match=r"output_dir=.*a_file/out: cannot write there \(Not a directory\)"):
+        run_sweep(cfg)
+    for port in ("-1", "99999", "http"):
+        view = subprocess.run([str(BIN / "gopre-view"), str(tmp_path), "--port", port], capture_output=True,
+                              text=True, timeout=60)
+        assert view.returncode == 2 and "Traceback" not in view.stderr
+        assert "argument --port: expected a TCP port 1-65535" in view.stderr, view.stderr

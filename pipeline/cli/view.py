@@ -46,6 +46,18 @@ def start(source: str, mlflow_uri: str | None = None, host: str = "127.0.0.1", p
     return server, viewer
 
 
+def tcp_port(text: str) -> int:
+    """``--port``: a TCP port, 1-65535 (a bad one used to leave a server thread's traceback and a
+    process that never exited)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 1-65535, got {text!r}") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 1-65535, got {port}")
+    return port
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=command_name("view"), description=__doc__,
                                      epilog=alias_note("view"),
@@ -53,7 +65,7 @@ def main(argv=None) -> int:
     parser.add_argument("source", help="job folder outputs/<sweep>/jobs/<config hash>, or an MLflow run id")
     parser.add_argument("--mlflow-uri", help="tracking URI when SOURCE is an MLflow run id")
     parser.add_argument("--host", default="127.0.0.1", help="interface to serve on (default loopback)")
-    parser.add_argument("--port", type=int, default=8080)
+    parser.add_argument("--port", type=tcp_port, default=8080, help="TCP port, 1-65535 (default 8080)")
     parser.add_argument("--round", type=int, default=None, help="round shown first (default the last)")
     parser.add_argument("--scene", default=None, help="the scene folder, when not where the job ran")
     parser.add_argument("--data-root", default=None,

@@ -8,6 +8,7 @@ checkpoints its episode after every round, so a killed sweep loses no finished w
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -238,6 +239,17 @@ def compiles_here(resolved: dict, jobs: list[Job]) -> bool:
     return local and any(j.execution.device == "cpu" for j in jobs)
 
 
+def writable_folder(folder: Path, key: str) -> None:
+    """``folder`` exists or can be made, and takes a file: else one ConfigError naming ``key``."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(f"{key}={folder}: cannot write there ({err.strerror or err})") from None
+
+
 def execution_order(jobs: list[Job]) -> list[Job]:
     """Seed by seed (then the config's order): a sweep stopped early has every method of the
     first seeds, which is what paired comparisons need, rather than some methods on all seeds."""
@@ -249,6 +261,7 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
     start = time.perf_counter()
     jobs = expand_jobs(cfg)
     output_dir = Path(str(cfg.output_dir))
+    writable_folder(output_dir, "output_dir")
     try:
         lock = SweepLock(output_dir).acquire()
     except SweepLocked as err:
