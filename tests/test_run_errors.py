@@ -60,8 +60,7 @@ def test_multirun_is_refused_with_the_one_sweep_syntax_and_help_is_ours(tmp_path
 
 
 def test_an_impossible_output_dir_is_one_config_error_and_a_bad_port_one_line(tmp_path):
-    """Both were tracebacks (issue 47); a bad --port also left a process that never exited. (The
-    command line still fails earlier, in Hydra's own run folder under output_dir: left open.)"""
+    """Both were tracebacks (issue 47); a bad --port also left a process that never exited."""
     from hydra import compose, initialize_config_dir
 
     from pipeline.cli.run import CONF_DIR
@@ -73,6 +72,10 @@ def test_an_impossible_output_dir_is_one_config_error_and_a_bad_port_one_line(tm
         cfg = compose("config", ["experiment=debug", f"output_dir={blocker / 'out'}"])
     with pytest.raises(ConfigError, match=r"output_dir=.*a_file/out: cannot write there \(Not a directory\)"):
         run_sweep(cfg)
+    proc = subprocess.run([str(BIN / "gopre-run"), "experiment=debug", f"output_dir={blocker / 'out'}"],
+                          capture_output=True, text=True, timeout=300)  # the command: before Hydra's own folder
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert f"config error: output_dir={blocker / 'out'}: cannot write there (Not a directory)" in proc.stderr
     for port in ("-1", "99999", "http"):
         view = subprocess.run([str(BIN / "gopre-view"), str(tmp_path), "--port", port], capture_output=True,
                               text=True, timeout=60)

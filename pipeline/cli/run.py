@@ -42,9 +42,24 @@ def data_dir(sub: str, *, _root_: DictConfig) -> str:
     return str(Path(str(root)) / sub)
 
 
+def hydra_folder(output_dir: str) -> str:
+    """``${hydra_folder:${output_dir}}``: where Hydra keeps its run files, <output_dir>/hydra; a
+    temporary folder when output_dir cannot be written, so that the sweep itself refuses it in one
+    line (``sweep.writable_folder``) instead of Hydra failing with a traceback before it starts."""
+    folder = Path(output_dir) / "hydra"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        return str(folder)
+    except OSError:
+        import tempfile
+        return str(Path(tempfile.gettempdir()) / "gopre-hydra")
+
+
 def register_resolvers() -> None:
     if not OmegaConf.has_resolver("data_dir"):
         OmegaConf.register_new_resolver("data_dir", data_dir)
+    if not OmegaConf.has_resolver("hydra_folder"):
+        OmegaConf.register_new_resolver("hydra_folder", hydra_folder)
 
 
 register_resolvers()
