@@ -81,3 +81,30 @@ def test_an_impossible_output_dir_is_one_config_error_and_a_bad_port_one_line(tm
                               text=True, timeout=60)
         assert view.returncode == 2 and "Traceback" not in view.stderr
         assert "argument --port: expected a TCP port 1-65535" in view.stderr, view.stderr
+
+
+@pytest.mark.parametrize("command", [
+    ["gopre-eval", "MODEL", "SCENE", "--out", "{bad}/m.json"],
+    ["gopre-export", "MODEL", "--out", "{bad}/m.ply"],
+    ["gopre-report", "RECORDS", "--out", "{bad}/report"],
+    ["gopre-data", "generate", "{bad}/scene"],
+])
+def test_an_output_path_that_cannot_be_written_is_one_line_before_any_work(command, tmp_path):
+    """Each of these wrote a traceback after its work (issue 47)."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    bad = blocker / "under"
+    model = tmp_path / "m.ply"
+    from pipeline.splat import ply
+    from pipeline.splat.scenes import random_scene
+    ply.save(random_scene(20, seed=0, sh_degree=0), model)
+    records = tmp_path / "sweep"
+    records.mkdir()
+    import pandas as pd
+    pd.DataFrame([{"sweep": "s", "kind": "final", "status": "FINISHED", "method": "a", "dataset": "d",
+                   "scene": "x", "seed": 0, "psnr": 20.0, "config_hash": "h"}]).to_parquet(records / "records.parquet")
+    args = [a.format(bad=bad).replace("MODEL", str(model)).replace("SCENE", str(tmp_path))
+            .replace("RECORDS", str(records)) for a in command]
+    proc = subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert f"{bad}" in proc.stderr and "cannot write there (Not a directory)" in proc.stderr, proc.stderr

@@ -25,6 +25,23 @@ def command_name(name: str) -> str:
     return typed if typed in (f"gopre-{name}", f"pipeline-{name}") else f"gopre-{name}"
 
 
+def unwritable(path, option: str, folder: bool = False) -> str | None:
+    """Why the command could not write its output ``path`` (``folder``: a folder it fills, else a
+    file), checked before any work; None when it can. Makes the folder (or the file's folder)."""
+    from pathlib import Path
+    target = Path(path) if folder else Path(path).parent
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+        probe = target / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        return f"{option} {path}: cannot write there ({err.strerror or err})"
+    if not folder and Path(path).is_dir():
+        return f"{option} {path}: is a folder, expected a file"
+    return None
+
+
 def alias_note(name: str) -> str:
     return (f"(Also installed as pipeline-{name}, the old name: an alias kept for one release; "
             f"use gopre-{name}.)")

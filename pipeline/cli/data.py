@@ -25,7 +25,7 @@ import json
 import sys
 from pathlib import Path
 
-from pipeline.cli import alias_note, command_name
+from pipeline.cli import alias_note, command_name, unwritable
 from pipeline.data.images import DataError
 from pipeline.data.load import load_scene
 from pipeline.data.synthetic import at_fraction
@@ -168,6 +168,9 @@ def main(argv=None) -> int:
             print(json.dumps(make_twin(args.scene, args.out, args.width, args.iterations, args.seed)))
         else:
             from pipeline.data.synthetic import generate
+            problem = unwritable(args.out, "OUT", folder=True)
+            if problem:
+                raise ValueError(problem)
             out = generate(args.out, seed=args.seed, size=args.size, progress=print_progress)
             print(json.dumps({"written": str(out), "seed": args.seed, "size": args.size}))
     except (DataError, ValueError) as err:

@@ -28,7 +28,7 @@ import json
 import sys
 from pathlib import Path
 
-from pipeline.cli import alias_note, command_name
+from pipeline.cli import alias_note, command_name, unwritable
 from pipeline.data.images import DataError
 from pipeline.data.protocols import KINDS
 from pipeline.eval.model import evaluate_model
@@ -58,6 +58,10 @@ def main(argv=None) -> int:
         parser.error("MODEL and SCENE are required (or --sweep DIR)")
     if args.width is not None and args.width < 1:
         parser.error(f"--width: expected a positive integer, got {args.width}")
+    problem = unwritable(args.out, "--out") if args.out is not None else None
+    if problem:
+        print(f"{command_name('eval')}: error: {problem}", file=sys.stderr)
+        return 1
     try:
         result = evaluate_model(args.model, args.scene, args.protocol, args.width, not args.no_lpips,
                                 args.llff_hold)

@@ -16,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.cli import alias_note, command_name
+from pipeline.cli import alias_note, command_name, unwritable
 from pipeline.experiment.export import read_model
 from pipeline.splat import ply
 
@@ -41,8 +41,11 @@ def main(argv=None) -> int:
     parser.add_argument("--mlflow-uri", default=None, help="read SOURCE as a run id from this tracking URI")
     args = parser.parse_args(argv)
     try:
-        model = read_model(args.source, args.mlflow_uri)
         out = args.out or default_out(args.source, args.format, bool(args.mlflow_uri))
+        problem = unwritable(out, "--out")
+        if problem:
+            raise ValueError(problem)
+        model = read_model(args.source, args.mlflow_uri)
         data = ply.export_bytes(model, args.format)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(data)

@@ -21,7 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.cli import alias_note, command_name
+from pipeline.cli import alias_note, command_name, unwritable
 from pipeline.report.report import combine_records, make_report
 
 
@@ -97,6 +97,9 @@ def main(argv=None) -> int:
             if frame.empty:
                 raise ValueError(f"no records for seeds {sorted(seeds)}")
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
+        problem = unwritable(out, "--out", folder=True)
+        if problem:
+            raise ValueError(problem)
         if args.paper_only:
             summary = {"out": str(out), "tables": "", "runs": len(frame[frame["kind"] == "final"]),
                        "failed": 0, "figures": {}}
