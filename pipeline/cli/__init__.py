@@ -27,19 +27,10 @@ def command_name(name: str) -> str:
 
 def unwritable(path, option: str, folder: bool = False) -> str | None:
     """Why the command could not write its output ``path`` (``folder``: a folder it fills, else a
-    file), checked before any work; None when it can. Makes the folder (or the file's folder)."""
-    from pathlib import Path
-    target = Path(path) if folder else Path(path).parent
-    try:
-        target.mkdir(parents=True, exist_ok=True)
-        probe = target / f".write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as err:
-        return f"{option} {path}: cannot write there ({err.strerror or err})"
-    if not folder and Path(path).is_dir():
-        return f"{option} {path}: is a folder, expected a file"
-    return None
+    file), naming the option; checked before any work. None when it can."""
+    from pipeline.interchange.layout import cannot_write
+    problem = cannot_write(path, folder)
+    return None if problem is None else f"{option} {path}: {problem}"
 
 
 def alias_note(name: str) -> str:

@@ -8,7 +8,6 @@ checkpoints its episode after every round, so a killed sweep loses no finished w
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,6 +29,7 @@ from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.tracking import make_tracker
 from pipeline.experiment.warmup import compile_kernels
+from pipeline.interchange.layout import cannot_write
 from pipeline.splat import ply
 from pipeline.experiment.spec import Job
 
@@ -241,13 +241,9 @@ def compiles_here(resolved: dict, jobs: list[Job]) -> bool:
 
 def writable_folder(folder: Path, key: str) -> None:
     """``folder`` exists or can be made, and takes a file: else one ConfigError naming ``key``."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as err:
-        raise ConfigError(f"{key}={folder}: cannot write there ({err.strerror or err})") from None
+    problem = cannot_write(folder, folder=True)
+    if problem is not None:
+        raise ConfigError(f"{key}={folder}: {problem}")
 
 
 def execution_order(jobs: list[Job]) -> list[Job]:

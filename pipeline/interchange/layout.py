@@ -24,6 +24,23 @@ BENCHMARK_RESULT = "benchmark/result.json"     # the portable result (an artifac
 MODEL = "model.ply"                            # the final model, INRIA 3DGS PLY (an artifact, also in MLflow)
 
 
+def cannot_write(path: Path, folder: bool = False) -> str | None:
+    """Why ``path`` cannot be written (``folder``: a folder to fill, else a file), None when it
+    can: makes the folder (or the file's folder) and writes a probe file there."""
+    import os
+    target = Path(path) if folder else Path(path).parent
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+        probe = target / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        return f"cannot write there ({err.strerror or err})"
+    if not folder and Path(path).is_dir():
+        return "is a folder, expected a file"
+    return None
+
+
 @dataclass(frozen=True)
 class JobFolder:
     path: Path
