@@ -335,6 +335,8 @@ def test_a_deterministic_failure_is_not_retried(error, tmp_path, monkeypatch):
     outcome = job_module.run_with_retries(job)
     assert not outcome.finished and outcome.attempts == 1 and len(outcome.errors) == 1
     assert "deterministic: not retried" in (Path(job.execution.job_dir) / "log.txt").read_text()
+    import logging
+    assert not logging.getLogger(f"gopre.job.{Path(job.execution.job_dir).name}").handlers  # log file closed
 
 
 def test_a_missing_kernel_cache_is_announced_and_compiled_before_any_job(tmp_path, monkeypatch, capsys):

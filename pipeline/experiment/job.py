@@ -19,8 +19,8 @@ from typing import Callable
 
 import torch
 
-from pipeline.active import episode_plan, run_episode
-from pipeline.active.episode import uniform_subset
+from pipeline.active import run_episode
+from pipeline.active.episode import uniform_subset, views_schedule
 from pipeline.data.protocols import build_protocol
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.load import load_scene
@@ -62,10 +62,15 @@ def job_logger(folder: Path) -> logging.Logger:
 
 
 def _log(folder: Path, line: str) -> None:
-    logger = job_logger(folder)
-    logger.log(logging.WARNING if line.startswith(("warning", "attempt")) else logging.INFO, line)
-    for handler in logger.handlers:
-        handler.flush()
+    job_logger(folder).log(logging.WARNING if line.startswith(("warning", "attempt")) else logging.INFO, line)
+
+
+def close_job_log(folder: Path) -> None:
+    """Close the job's log file (a driver running hundreds of jobs must not keep one open each)."""
+    logger = logging.getLogger(f"gopre.job.{folder.name}")
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+        handler.close()
 
 
 Report = Callable[[RoundMessage | StepProgress], None]  # rounds, and progress inside a round
@@ -112,8 +117,9 @@ def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.T
 def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = job.episode
     started = time.time()  # the MLflow run of the job starts here, not at its first round
-    rounds = len(episode_plan(scene, cfg).round_views) + 1
-    curve_views = len(uniform_subset(build_protocol(scene, cfg.protocol).test_ids, cfg.curve_test_views))
+    views = build_protocol(scene, cfg.protocol)
+    rounds = len(views_schedule(views, cfg).round_views) + 1
+    curve_views = len(uniform_subset(views.test_ids, cfg.curve_test_views))
     pending_images: dict[int, dict[str, bytes]] = {}
 
     def on_selection(ep, rec):
@@ -229,6 +235,13 @@ def run_with_retries(job: Job, scene: Scene | None = None, report: Report | None
     """``run_job`` with up to ``execution.retries`` re-runs after a transient error (``transient``);
     the outcome says FINISHED, or FAILED with the traceback of each attempt. Never raises for an
     application error; an exit or stop request (``stop_request``) is raised, not retried."""
+    try:
+        return _attempts(job, scene, report)
+    finally:
+        close_job_log(Path(job.execution.job_dir))
+
+
+def _attempts(job: Job, scene: Scene | None, report: Report | None) -> JobOutcome:
     attempts = 1 + max(0, int(job.execution.retries))
     errors = []
     for attempt in range(1, attempts + 1):

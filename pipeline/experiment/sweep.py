@@ -231,12 +231,10 @@ def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: P
                  f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).")
 
 
-def compiles_here(resolved: dict, jobs: list[Job]) -> bool:
-    """The jobs run on this machine's CPU (local, or a Ray this launch starts): compile the kernels
-    here first when their cache is missing. Jobs on a cluster compile on their nodes."""
-    executor = resolved["executor"]
-    local = executor.get("kind") == "local" or (executor.get("kind") == "ray" and not executor.get("address"))
-    return local and any(j.execution.device == "cpu" for j in jobs)
+def compiles_here(executor, jobs: list[Job]) -> bool:
+    """The jobs run on this machine's CPU (``executor.runs_here``): compile the kernels here first
+    when their cache is missing. Jobs on a cluster compile on their nodes."""
+    return executor.runs_here and any(j.execution.device == "cpu" for j in jobs)
 
 
 def writable_folder(folder: Path, key: str) -> None:
@@ -244,6 +242,15 @@ def writable_folder(folder: Path, key: str) -> None:
     problem = cannot_write(folder, folder=True)
     if problem is not None:
         raise ConfigError(f"{key}={folder}: {problem}")
+
+
+def acquire_lock(output_dir: Path) -> SweepLock:
+    """``output_dir``'s lock (one driver per folder: a sweep or a tracking replay), or a ConfigError
+    saying who holds it."""
+    try:
+        return SweepLock(output_dir).acquire()
+    except SweepLocked as err:
+        raise ConfigError(str(err)) from None
 
 
 def execution_order(jobs: list[Job]) -> list[Job]:
@@ -258,10 +265,7 @@ def run_sweep(cfg: DictConfig) -> SweepSummary:
     jobs = expand_jobs(cfg)
     output_dir = Path(str(cfg.output_dir))
     writable_folder(output_dir, "output_dir")
-    try:
-        lock = SweepLock(output_dir).acquire()
-    except SweepLocked as err:
-        raise ConfigError(str(err)) from None
+    lock = acquire_lock(output_dir)
     try:
         with sweep_log(output_dir):
             return _locked_sweep(cfg, jobs, output_dir, start, lock)
@@ -296,7 +300,7 @@ class SweepRun:
 
     def run(self, stale_driver: bool = False) -> SweepSummary:
         scenes = self.prepare(stale_driver)
-        if self.todo and compiles_here(self.resolved, self.todo):
+        if self.todo and compiles_here(self.executor, self.todo):
             compile_kernels(lambda line: LOG.info(f"[{self.name}] {line}"))
         if self.todo:
             self.progress = Progress(self.name, len(self.todo), getattr(self.executor, "slots", 1))
@@ -407,10 +411,7 @@ def sync_tracking(cfg: DictConfig) -> dict:
     records = RecordsFile(output_dir)
     finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    try:
-        lock = SweepLock(output_dir).acquire()  # no sweep may run in this folder while it is replayed
-    except SweepLocked as err:
-        raise ConfigError(str(err)) from None
+    lock = acquire_lock(output_dir)  # no sweep may run in this folder while it is replayed
     try:
         return _sync(cfg, jobs, output_dir, records, finals, resolved)
     finally:

@@ -19,10 +19,12 @@ class Executor(Protocol):
     ``map`` calls ``on_done(job, outcome)`` once per job (a FAILED outcome when the job could not
     finish, never an exception for an application error) and ``on_round(job, message)`` for each
     finished round it hears while jobs run; a stop signal (``SweepInterrupted``) cancels what
-    runs and leaves the interrupted jobs in ``running``. ``slots``: jobs that run at once (the ETA)."""
+    runs and leaves the interrupted jobs in ``running``. ``slots``: jobs that run at once (the ETA).
+    ``runs_here``: the jobs run on this machine (its CPU and its kernel cache)."""
 
     slots: int
     running: list[Job]
+    runs_here: bool
 
     def map(self, jobs: list[Job], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None: ...

@@ -10,6 +10,7 @@ from pipeline.experiment.spec import Job
 
 class LocalExecutor:
     slots = 1
+    runs_here = True
 
     def __init__(self):
         self.running: list[Job] = []  # the jobs a stop signal interrupted (see SweepInterrupted)

@@ -175,6 +175,7 @@ class RayExecutor:
         self.output_dir = Path(output_dir).resolve() if output_dir is not None else None
         self.slots = 1
         self.running: list[Job] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
+        self.runs_here = not address  # a Ray this launch starts on this machine's cores
 
     def _start(self):
         """Ray, and whether this call started it (then ``map`` shuts it down again)."""

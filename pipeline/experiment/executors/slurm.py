@@ -109,6 +109,7 @@ class SlurmExecutor:
         self.signal_delay_s = signal_delay_s  # how long before the time limit the task is told to requeue
         self.slots = 1
         self.running: list[Job] = []
+        self.runs_here = cluster == "local"  # submitit's local executor: processes on this machine
         self.submitted: dict[str, object] = {}  # config hash -> submitit job (tests interrupt one)
 
     @classmethod
