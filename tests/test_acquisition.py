@@ -58,7 +58,8 @@ def make_ctx(parts, perm=None, seed=0):
                                           ("popgs", {}), ("gopre", {}), ("gopre", {"score": "mc"}),
                                           ("gopre", {"score": "trace"}), ("gopre", {"goal": "identity"}),
                                           ("gopre", {"tau": 1e-3}), ("gopre", {"tau": 0.0}), ("popgs", {"variant": "block"}),
-                                          ("gaussmi", {}), ("activenerf", {"steps": 10})])
+                                          ("gaussmi", {}), ("activenerf", {"steps": 10}),
+                                          ("warprf", {}), ("fisherrf_nbvgym", {})])
 def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options):
     strategy = make_strategy(name, **options)
     first = strategy.select(make_ctx(ctx_parts), count=2)
@@ -73,7 +74,8 @@ def test_selection_is_order_invariant_and_deterministic(ctx_parts, name, options
     assert (first.fisher_seconds > 0) == (first.fisher_views > 0)
 
 
-@pytest.mark.parametrize("name", ["random", "coverage", "cover", "fisherrf", "popgs", "gopre", "gaussmi", "activenerf"])
+@pytest.mark.parametrize("name", ["random", "coverage", "cover", "fisherrf", "popgs", "gopre", "gaussmi", "activenerf",
+                                  "warprf", "fisherrf_nbvgym"])
 def test_a_selection_picks_one_view_unless_asked_for_more(ctx_parts, name):
     options = {"steps": 5} if name == "activenerf" else {}
     sel = make_strategy(name, **options).select(make_ctx(ctx_parts))

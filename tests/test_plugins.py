@@ -184,7 +184,8 @@ def test_a_preset_takes_another_method_with_one_override(tmp_path):
             plain = list(compose("config", [f"experiment={preset}"]).method)
             added = list(compose("config", [f"experiment={preset}", "+method=mine",
                                             f"hydra.searchpath=[file://{tmp_path}]"]).method)
-        assert plain == ["random", "coverage", "cover", "activenerf", "fisherrf", "gaussmi", "popgs", "gopre"]
+        assert plain == ["random", "coverage", "cover", "activenerf", "fisherrf", "fisherrf_nbvgym", "gaussmi",
+                         "warprf", "popgs", "gopre"]
         assert added == plain + ["mine"]
 
 

@@ -6,10 +6,12 @@ from pipeline.acquisition.base import Selection, SelectionContext, Strategy
 from pipeline.acquisition.cover import CoverStrategy
 from pipeline.acquisition.coverage import CoverageStrategy
 from pipeline.acquisition.fisherrf import FisherRFStrategy
+from pipeline.acquisition.fisherrf_nbvgym import FisherRFNbvGymStrategy
 from pipeline.acquisition.gaussmi import GaussMIStrategy
 from pipeline.acquisition.gopre import GoPreStrategy
 from pipeline.acquisition.popgs import PopGSStrategy
 from pipeline.acquisition.random import RandomStrategy
+from pipeline.acquisition.warprf import WarpRFStrategy
 
 REGISTRY = {
     "random": RandomStrategy,
@@ -20,6 +22,8 @@ REGISTRY = {
     "gopre": GoPreStrategy,
     "activenerf": ActiveNeRFStrategy,
     "gaussmi": GaussMIStrategy,
+    "warprf": WarpRFStrategy,
+    "fisherrf_nbvgym": FisherRFNbvGymStrategy,
 }
 
 
