@@ -195,10 +195,10 @@ def test_scores_in_small_candidate_blocks_equal_whole_pool_scores(ctx_parts, mon
         assert blocked.scores[k] == pytest.approx(v, rel=1e-12)
 
 
-@pytest.mark.parametrize("name,options,match", [("gopre", {"tau": -1.0}, "tau must be >= 0"),
+@pytest.mark.parametrize("name,options,match", [("gopre", {"tau": -1.0}, "tau: -1.0 is not a number >= 0"),
                                                 ("gopre", {"tau": 0.0, "score": "mc"}, "tau = 0 .*logdet"),
-                                                ("gopre", {"goal": "everything"}, "goal must be one of"),
-                                                ("popgs", {"variant": "full"}, "variant must be one of")])
+                                                ("gopre", {"goal": "everything"}, "goal: 'everything' is not one of probes, identity"),
+                                                ("popgs", {"variant": "full"}, "variant: 'full' is not one of diag, block")])
 def test_bad_strategy_options_name_the_option(name, options, match):
     with pytest.raises(ValueError, match=match):
         make_strategy(name, **options)

@@ -111,9 +111,9 @@ def test_the_neighbourhood_option_scores_only_the_candidates_near_the_last_view(
     assert sel.chosen == [9] and sel.scores[8] == math.inf  # the far side is out of reach
 
 
-@pytest.mark.parametrize("options,match", [({"bins": 0}, "bins must be >= 1"),
-                                           ({"radius_clip": -1.0}, "radius_clip must be >= 0"),
-                                           ({"neighbours": 0}, "neighbours must be >= 1")])
+@pytest.mark.parametrize("options,match", [({"bins": 0}, "bins: 0 is not an integer >= 1"),
+                                           ({"radius_clip": -1.0}, "radius_clip: -1.0 is not a number >= 0"),
+                                           ({"neighbours": 0}, "neighbours: 0 is not an integer >= 1, or null")])
 def test_bad_cover_options_name_the_option(options, match):
     with pytest.raises(ValueError, match=match):
         make_strategy("cover", **options)

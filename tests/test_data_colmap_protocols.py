@@ -190,7 +190,7 @@ def test_empty_sector_is_a_clear_error(generated):
     cfg = ProtocolConfig("goal", manifold={"kind": "sector", "start_deg": 0, "width_deg": 1e-6})
     with pytest.raises(ValueError, match="holds no test view"):
         build_protocol(generated, cfg)
-    with pytest.raises(ValueError, match="protocol kind"):
+    with pytest.raises(ValueError, match="kind: 'local' is not one of global, goal, sparse"):
         ProtocolConfig("local")
 
 

@@ -45,7 +45,7 @@ def test_plan_lists_jobs_marks_finished_ones_and_estimates_the_rest(tmp_path):
 def test_plan_with_a_bad_key_is_a_config_error_with_exit_2(tmp_path):
     proc = run_plan(f"output_dir={tmp_path}", "protocol.kind=local")
     assert proc.returncode == 2
-    assert "config error" in proc.stderr and "protocol kind must be one of" in proc.stderr
+    assert "config error" in proc.stderr and "protocol.kind: 'local' is not one of global, goal, sparse" in proc.stderr
 
 
 def test_a_first_jobs_one_time_compilation_is_not_in_the_estimate():

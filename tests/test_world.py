@@ -285,7 +285,7 @@ def test_a_goal_episode_searches_inside_the_target_sector(episode_scene):
 def test_bad_world_settings_name_the_key(episode_scene):
     from pipeline.active.config import tiny_episode
     from pipeline.active.episode import Episode
-    for changes, match in (({"world": "moon"}, "world must be one of"),
+    for changes, match in (({"world": "moon"}, "world: 'moon' is not one of dataset, generated, twin"),
                            ({"world": "twin"}, "world_model"),
                            ({"world": "generated", "search": {"budget": 3}}, r"search: unknown keys \['budget'\]"),
                            ({"search": {"evaluations": 3}}, "needs a capture simulator"),

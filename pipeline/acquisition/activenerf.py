@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
+from pipeline.bounds import FLOAT, INT, bounded, require_bounds
 from pipeline.acquisition.base import Selection, SelectionContext, timed_selection
 from pipeline.acquisition.rendered_stats import view_compositing_weights
 from pipeline.splat import render
@@ -31,16 +32,13 @@ from pipeline.splat.rasterize import CompositingWeights
 @dataclass
 class ActiveNeRFStrategy:
     name: str = "activenerf"
-    steps: int = 60
-    lr: float = 0.1
-    min_variance: float = 1e-4
-    init_log_var: float = -3.0
+    steps: int = bounded(60, INT, ge=0, usual_max=100_000)
+    lr: float = bounded(0.1, FLOAT, gt=0)
+    min_variance: float = bounded(1e-4, FLOAT, gt=0)
+    init_log_var: float = bounded(-3.0, FLOAT)
 
     def __post_init__(self) -> None:
-        if self.steps < 0:
-            raise ValueError(f"activenerf steps must be >= 0, got {self.steps}")
-        if not self.min_variance > 0:
-            raise ValueError(f"activenerf min_variance must be positive, got {self.min_variance}")
+        require_bounds(self)
 
     def fit_variance(self, ctx: SelectionContext) -> torch.Tensor:
         """log_var [N] fitted by NLL on the taken views (geometry and colour fixed)."""

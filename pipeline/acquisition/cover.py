@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from pipeline.bounds import FLOAT, INT, bounded, require_bounds
 from pipeline.acquisition.base import Selection, SelectionContext, timed_selection
 from pipeline.cameras import Cameras
 from pipeline.splat import Gaussians, RenderSettings, render
@@ -112,17 +113,12 @@ def nearest_candidates(candidates: Tensor, last_taken: Tensor, neighbours: int) 
 @dataclass
 class CoverStrategy:
     name: str = "cover"
-    bins: int = COVER_BINS
-    radius_clip: float = COVER_RADIUS_CLIP
-    neighbours: int | None = None
+    bins: int = bounded(COVER_BINS, INT, ge=1, usual_max=100_000)
+    radius_clip: float = bounded(COVER_RADIUS_CLIP, FLOAT, ge=0)  # pixels
+    neighbours: int | None = bounded(None, INT, ge=1, nullable=True)
 
     def __post_init__(self) -> None:
-        if self.bins < 1:
-            raise ValueError(f"cover bins must be >= 1, got {self.bins}")
-        if self.radius_clip < 0:
-            raise ValueError(f"cover radius_clip must be >= 0 pixels, got {self.radius_clip}")
-        if self.neighbours is not None and self.neighbours < 1:
-            raise ValueError(f"cover neighbours must be >= 1 or null, got {self.neighbours}")
+        require_bounds(self)
 
     def scores(self, ctx: SelectionContext, order: list[int]) -> Tensor:
         """Every candidate's score [M] (aligned with ``order``); candidates outside the

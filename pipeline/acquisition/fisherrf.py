@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 
 from torch import Tensor
 
+from pipeline.bounds import FLOAT, STR, bounded, require_bounds
 from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, gain_pose_scorer, greedy_pick,
                                        pool_and_train_fishers, timed_selection)
-from pipeline.fisher.exact import FisherSpec
+from pipeline.fisher.exact import HESSIANS, FisherSpec
 from pipeline.fisher.posterior import POSTERIOR_LAMBDA
 
 FISHERRF_GROUPS = ("means", "log_scales", "logit_opacities", "sh0", "shN")
@@ -24,11 +25,12 @@ FISHERRF_GROUPS = ("means", "log_scales", "logit_opacities", "sh0", "shN")
 @dataclass
 class FisherRFStrategy:
     name: str = "fisherrf"
-    lam: float = POSTERIOR_LAMBDA
-    hessian: str = "exact"
+    lam: float = bounded(POSTERIOR_LAMBDA, FLOAT, gt=0)
+    hessian: str = bounded("exact", STR, choices=HESSIANS)
     spec: FisherSpec = field(init=False)
 
     def __post_init__(self) -> None:
+        require_bounds(self)
         self.spec = FisherSpec(groups=FISHERRF_GROUPS, hessian=self.hessian)
 
     def information_gain(self, h: Tensor, fishers: Tensor) -> Tensor:

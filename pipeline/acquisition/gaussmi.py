@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from pipeline.bounds import FLOAT, bounded, require_bounds
 from pipeline.acquisition.base import Selection, SelectionContext, timed_selection
 from pipeline.acquisition.rendered_stats import render_feature, weighted_pixel_sums
 from pipeline.splat import render
@@ -31,7 +32,10 @@ def direction_bins(means: torch.Tensor, center: torch.Tensor) -> torch.Tensor:
 @dataclass
 class GaussMIStrategy:
     name: str = "gaussmi"
-    error_sigma: float = 0.1
+    error_sigma: float = bounded(0.1, FLOAT, gt=0)
+
+    def __post_init__(self) -> None:
+        require_bounds(self)
 
     def log_odds(self, ctx: SelectionContext):
         g = ctx.gaussians.detach()

@@ -16,6 +16,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from pipeline.bounds import FLOAT, STR, bounded, require_bounds
 from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, fisher_vectors, greedy_pick,
                                        greedy_pick_sparse, pool_and_train_fishers, sparse_fishers,
                                        sparse_fishers_reusing, summed_fisher, taken_fisher,
@@ -37,24 +38,16 @@ FISHER_GROUPS = {"all": PARAM_GROUPS, "without_sh_rest": tuple(g for g in PARAM_
 @dataclass
 class GoPreStrategy:
     name: str = "gopre"
-    lam: float = POSTERIOR_LAMBDA
-    tau: float = 1.0
-    goal: str = "probes"
-    score: str = "logdet"
-    fisher_groups: str = "all"
+    lam: float = bounded(POSTERIOR_LAMBDA, FLOAT, gt=0)
+    tau: float = bounded(1.0, FLOAT, ge=0)                       # 0: the tau -> 0 limit
+    goal: str = bounded("probes", STR, choices=GOALS)
+    score: str = bounded("logdet", STR, choices=SCORES)
+    fisher_groups: str = bounded("all", STR, choices=tuple(FISHER_GROUPS))
     spec: FisherSpec = field(init=False)
 
     def __post_init__(self) -> None:
-        if self.fisher_groups not in FISHER_GROUPS:
-            raise ValueError(f"gopre fisher_groups must be one of {sorted(FISHER_GROUPS)}, "
-                             f"got {self.fisher_groups!r}")
+        require_bounds(self)
         self.spec = FisherSpec(groups=FISHER_GROUPS[self.fisher_groups])
-        if self.score not in SCORES:
-            raise ValueError(f"gopre score must be one of {SCORES}, got {self.score!r}")
-        if self.goal not in GOALS:
-            raise ValueError(f"gopre goal must be one of {GOALS}, got {self.goal!r}")
-        if not self.tau >= 0:
-            raise ValueError(f"gopre tau must be >= 0 (0: the tau -> 0 limit), got {self.tau}")
         if self.tau == 0 and self.score != "logdet":
             raise ValueError(f"gopre tau = 0 (the limit) is defined for score='logdet' only, "
                              f"got score={self.score!r}")

@@ -15,6 +15,7 @@ import torch
 
 from torch import Tensor
 
+from pipeline.bounds import FLOAT, STR, bounded, require_bounds
 from pipeline.acquisition.base import (PoseScorer, Selection, SelectionContext, gain_pose_scorer, greedy_pick,
                                        pool_and_train_fishers, timed_selection)
 from pipeline.cameras import Cameras
@@ -28,14 +29,13 @@ VARIANTS = ("diag", "block")
 @dataclass
 class PopGSStrategy:
     name: str = "popgs"
-    lam: float = POSTERIOR_LAMBDA
-    variant: str = "diag"
+    lam: float = bounded(POSTERIOR_LAMBDA, FLOAT, gt=0)
+    variant: str = bounded("diag", STR, choices=VARIANTS)
     spec: FisherSpec = FisherSpec()
     block_spec: FisherSpec = FisherSpec(groups=BLOCK_GROUPS)
 
     def __post_init__(self) -> None:
-        if self.variant not in VARIANTS:
-            raise ValueError(f"popgs variant must be one of {VARIANTS}, got {self.variant!r}")
+        require_bounds(self)
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         run = self._diag if self.variant == "diag" else self._block

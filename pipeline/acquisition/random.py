@@ -7,14 +7,18 @@ from dataclasses import dataclass
 
 import torch
 
+from pipeline.bounds import BOOL, INT, bounded, require_bounds
 from pipeline.acquisition.base import Selection, SelectionContext, timed_selection
 
 
 @dataclass
 class RandomStrategy:
     name: str = "random"
-    same_seed_each_round: bool = False
-    seed: int = 0
+    same_seed_each_round: bool = bounded(False, BOOL)
+    seed: int = bounded(0, INT, ge=0)
+
+    def __post_init__(self) -> None:
+        require_bounds(self)
 
     def select(self, ctx: SelectionContext, count: int = 1) -> Selection:
         gen = torch.Generator().manual_seed(self.seed) if self.same_seed_each_round else ctx.generator

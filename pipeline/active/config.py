@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
+from pipeline.bounds import BOOL, FLOAT, INT, STR, bounded, require_bounds
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.fit.config import DensifyConfig, FitConfig, paper_preset
 
@@ -34,36 +35,34 @@ class EpisodeConfig:
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     strategy: str = "gopre"
     strategy_options: dict = field(default_factory=dict)
-    epochs_per_view: int = 100          # E: one view every E passes over the taken views
-    views_per_round: int = 1            # greedy batch size b
-    pool_keep_fraction: float = 1.0     # candidate-pool reduction (keep a seeded fraction per round)
-    post_selection: str = "reset_opacity"
-    curve_test_views: int | None = None  # test views for the per-round curve (None: all)
-    lpips: bool = True                  # try LPIPS at the final evaluation
-    seed: int = 0
+    epochs_per_view: int = bounded(100, INT, ge=1, usual_max=10_000)  # E: one view every E passes over the
+    # taken views (0 would evaluate a just-reset model)
+    views_per_round: int = bounded(1, INT, ge=1)           # greedy batch size b
+    pool_keep_fraction: float = bounded(1.0, FLOAT, gt=0, le=1)  # candidate-pool reduction (keep a
+    # seeded fraction per round)
+    post_selection: str = bounded("reset_opacity", STR, choices=POLICIES)
+    curve_test_views: int | None = bounded(None, INT, ge=1, nullable=True)  # test views for the per-round
+    # curve (None: all)
+    lpips: bool = bounded(True, BOOL)                      # try LPIPS at the final evaluation
+    seed: int = bounded(0, INT, ge=0)
     init: str | None = None             # "ply:PATH": start from a 3DGS PLY instead of points/box
-    world: str = "dataset"              # dataset | generated | twin (see WORLDS)
+    world: str = bounded("dataset", STR, choices=WORLDS)   # see WORLDS
     world_model: str | None = None      # twin: "ply:PATH" of the reference splat
     search: dict = field(default_factory=dict)  # pose search (world != dataset): SEARCH_KEYS
-    masks: bool = False                 # train and evaluate on the capture's masked-in pixels only
+    masks: bool = bounded(False, BOOL)  # train and evaluate on the capture's masked-in pixels only
 
     def __post_init__(self) -> None:
-        if self.post_selection not in POLICIES:
-            raise ValueError(f"post_selection must be one of {POLICIES}, got {self.post_selection!r}")
-        if self.epochs_per_view < 1:  # a round that trains nothing would evaluate a just-reset model
-            raise ValueError(f"epochs_per_view must be >= 1, got {self.epochs_per_view}")
-        if self.views_per_round < 1:
-            raise ValueError(f"views_per_round must be >= 1, got {self.views_per_round}")
-        if not 0 < self.pool_keep_fraction <= 1:
-            raise ValueError(f"pool_keep_fraction must be in (0, 1], got {self.pool_keep_fraction}")
+        require_bounds(self)  # each declared field; the relations between fields below
+        budget, initial = self.protocol.budget, self.protocol.initial_views
+        if budget is not None and self.views_per_round > budget - (initial or 1):
+            raise ValueError(f"views_per_round: {self.views_per_round} is more than the picks the budget "
+                             f"leaves (protocol.budget={budget}, initial views {initial or 'the default'})")
         if self.init is not None and not (isinstance(self.init, str) and self.init.startswith("ply:")
                                           and len(self.init) > 4):
             raise ValueError(f"init must be 'ply:PATH' or null, got {self.init!r}")
         self._check_world()
 
     def _check_world(self) -> None:
-        if self.world not in WORLDS:
-            raise ValueError(f"world must be one of {WORLDS}, got {self.world!r}")
         if (self.world == "twin") != (self.world_model is not None):
             raise ValueError("world_model ('ply:PATH' of the reference splat) is set with world=twin and only then, "
                              f"got world={self.world!r}, world_model={self.world_model!r}")

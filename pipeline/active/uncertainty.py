@@ -24,6 +24,7 @@ from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import initial_gaussians, uniform_subset
 from pipeline.active.results import UncertaintyResult
+from pipeline.bounds import FLOAT, INT, bounded, require_bounds
 from pipeline.cameras import Cameras
 from pipeline.data.sampling import seeded_subset
 from pipeline.data.scene import Scene
@@ -41,14 +42,21 @@ METHODS = ("gopre", "fisherrf", "activenerf")
 
 @dataclass(frozen=True)
 class UncertaintyConfig:
-    train_views: int = 10
-    iterations: int = 2000
-    test_views: int | None = None     # a uniform subset of the test split (None: all)
+    train_views: int = bounded(10, INT, ge=1)
+    iterations: int = bounded(2000, INT, ge=1, usual_max=300_000)
+    test_views: int | None = bounded(None, INT, ge=1, nullable=True)  # a uniform subset of the test split
+    # (None: all)
     methods: tuple[str, ...] = METHODS
-    lam: float = POSTERIOR_LAMBDA
-    tau: float = 1.0
-    map_views: int = 4                # per-pixel uncertainty maps for this many test views
-    seed: int = 0
+    lam: float = bounded(POSTERIOR_LAMBDA, FLOAT, gt=0)
+    tau: float = bounded(1.0, FLOAT, gt=0)
+    map_views: int = bounded(4, INT, ge=0)  # per-pixel uncertainty maps for this many test views
+    seed: int = bounded(0, INT, ge=0)
+
+    def __post_init__(self) -> None:
+        require_bounds(self)
+        unknown = sorted(set(self.methods) - set(METHODS))
+        if not self.methods or unknown:
+            raise ValueError(f"methods: {list(self.methods)!r} is not a non-empty list of {', '.join(METHODS)}")
 
 
 def sparsification_fit(fit: FitConfig, iterations: int, seed: int) -> FitConfig:

@@ -24,9 +24,10 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.cli import command_name
-from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.build import ConfigError, expand_jobs, plain_config
 from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.plan import hyperparameter_text, plan_jobs, plan_text, slots
+from pipeline.experiment.schema import config_warnings
 from pipeline.experiment.sweep import run_sweep, sync_tracking, validate_sweep
 from pipeline.experiment.tracking import mlflow_runs_hint
 
@@ -90,7 +91,8 @@ def main(cfg: DictConfig) -> None:
             sys.exit(2)
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
         print(hyperparameter_text(jobs) + "\n")
-        print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs)))
+        print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs),
+                        config_warnings(plain_config(cfg))))
         return
     if cfg.get("tracking_sync"):
         try:

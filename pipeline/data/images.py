@@ -63,6 +63,10 @@ class ImageStore:
                  budget_mb: float = 1024.0, source_size: tuple[int, int] | None = None):
         self.paths, self.size, self.background = list(paths), size, background
         self.source_size = source_size  # every file must have this size (None: not checked)
+        if source_size is not None and size[0] > source_size[0]:
+            raise DataError(f"{Path(self.paths[0]).parent}: training width {size[0]} px is wider than the "
+                            f"images ({source_size[0]} px): it would only upsample them (set splat.image_width "
+                            f"<= {source_size[0]}, or null for the images' own width)")
         self.budget_bytes = budget_mb * 2 ** 20
         self._cache: OrderedDict[int, Tensor] = OrderedDict()
         self._bytes = 0

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from pipeline.bounds import FLOAT, INT, STR, bounded, require_bounds
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold, azimuths_deg, estimate_up, manifold_from_dict, member_ids
 from pipeline.data.sampling import probe_count
@@ -27,29 +28,25 @@ KINDS = ("global", "goal", "sparse")
 
 @dataclass
 class ProtocolConfig:
-    kind: str = "global"
-    initial_views: int | None = None      # None: 2 for Blender, 4 for real scenes
-    budget: int | None = None             # total views; None: 10 for Blender/sparse, 20 otherwise
-    probes: int | float | None = None     # K, or a fraction of all N views of the pool split
-                                          # (paper Table 5: N/4 ... N/64); None: 25 / 1/8
+    kind: str = bounded("global", STR, choices=KINDS)
+    initial_views: int | None = bounded(None, INT, ge=1, nullable=True)  # None: 2 for Blender, 4 for real scenes
+    budget: int | None = bounded(None, INT, ge=2, nullable=True)  # total views; None: 10 for Blender/sparse,
+    # 20 otherwise
+    probes: int | float | None = bounded(None, FLOAT, gt=0, nullable=True)  # K, or a fraction of all N
+    # views of the pool split (paper Table 5: N/4 ... N/64); None: 25 / 1/8
     manifold: dict = field(default_factory=lambda: {"kind": "sector", "start_deg": 0.0,
                                                      "width_deg": 120.0, "clockwise": True})
-    llff_hold: int = 8
+    llff_hold: int = bounded(8, INT, ge=2)
     probe_manifold: dict | None = None    # draw probes from this manifold only (the paper's
                                           # goal-metric misalignment ablation under ``global``)
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"protocol kind must be one of {KINDS}, got {self.kind!r}")
-        for name, low in (("initial_views", 1), ("budget", 2), ("llff_hold", 2)):
-            value = getattr(self, name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < low):
-                raise ValueError(f"protocol.{name} must be an integer >= {low}, got {value!r}")
-        if self.probes is not None:
-            k = self.probes
-            if isinstance(k, bool) or not isinstance(k, (int, float)) or not (k >= 1 or 0 < k < 1) \
-                    or (isinstance(k, float) and k > 1 and not k.is_integer()):
-                raise ValueError(f"protocol.probes must be a count >= 1 or a fraction in (0, 1), got {k!r}")
+        require_bounds(self)
+        k = self.probes  # a count (a whole number) or a fraction below 1
+        if isinstance(k, float) and k > 1 and not k.is_integer():
+            raise ValueError(f"probes: {k!r} is not a count >= 1 or a fraction in (0, 1)")
+        if self.initial_views is not None and self.budget is not None and self.initial_views >= self.budget:
+            raise ValueError(f"initial_views: {self.initial_views} leaves no pick within budget={self.budget}")
 
 
 @dataclass

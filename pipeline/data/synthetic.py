@@ -32,6 +32,8 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from pipeline.bounds import INT, bounded, require_bounds
+
 CAMERA_ANGLE_X = 0.6911112070083618  # the Blender scenes' field of view
 RADIUS = 4.0
 LIGHT = torch.nn.functional.normalize(torch.tensor([0.6, 0.25, 0.75]), dim=0)
@@ -286,6 +288,19 @@ def at_fraction(done: int, total: int, parts: int) -> bool:
 POOL_MIN_RAYS = 20 * 64 * 64 * SUPERSAMPLE ** 2
 
 
+@dataclass(frozen=True)
+class GeneratedScene:
+    """What ``generate`` makes, declared (a dataset's ``generate`` section)."""
+
+    seed: int = bounded(0, INT, ge=0)
+    size: int = bounded(100, INT, ge=8, le=4096)     # square images, pixels
+    n_train: int = bounded(100, INT, ge=1, le=100_000)
+    n_test: int = bounded(200, INT, ge=1, le=100_000)
+
+    def __post_init__(self) -> None:
+        require_bounds(self)
+
+
 def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100,
              n_test: int = 200, progress: Callable[[str, int, int], None] | None = None,
              workers: int | None = None) -> Path:
@@ -293,8 +308,7 @@ def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100
     done, total)`` hears each written view (the caller decides how often to say so). ``workers``:
     processes rendering views in parallel (default: one per CPU for a scene of more than
     ``POOL_MIN_RAYS`` rays, else 1); the images do not depend on it."""
-    if size < 8:
-        raise ValueError(f"size must be at least 8 pixels, got {size}")
+    GeneratedScene(seed, size, n_train, n_test)  # their declared bounds
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     final = Path(out)

@@ -23,12 +23,13 @@ from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
+from pipeline.bounds import BoundsError, under
 from pipeline.experiment.layout import SweepFolder
+from pipeline.experiment.schema import JOB_KINDS, config_problems
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
 from pipeline.experiment.splat_section import job_form
 
-JOB_KINDS = ("episode", "uncertainty")
 # protocol/splat: overrides for this method; world: this method's capture simulator (gopre_search)
 METHOD_KEYS = {"strategy", "options", "protocol", "splat", "world"}
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
@@ -115,25 +116,26 @@ def seeds_of(cfg: DictConfig) -> list[int]:
         raise ConfigError(f"seeds: expected a non-empty list of integers, e.g. seeds=[0,1,2], got {seeds!r}")
     if any(s < 0 for s in seeds):
         raise ConfigError(f"seeds: a seed must be >= 0, got {seeds!r}")
+    if len(set(seeds)) != len(seeds):  # each job would run twice and its records be duplicated
+        raise ConfigError(f"seeds: {seeds!r} lists a seed twice")
     return seeds
 
 
-# job.* settings that must be integers of at least this value
-JOB_MINIMUMS = {"threads": 1, "retries": 0, "renders": 0, "round_images": 0}
-# splat.* values that are positive integers when set (null: the preset's)
-POSITIVE_SPLAT = ("iterations", "image_width", "max_gaussians")
+DATASET_KEYS = {"format", "root", "scenes"}
 
 
-def _minimum(key: str, value, least: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ConfigError(f"{key}: expected an integer >= {least}, got {value!r}")
+def plain_config(cfg: DictConfig) -> dict:
+    """The composed config as plain data, section by section (a bad interpolation names its key)."""
+    return {key: _container(cfg, key) if OmegaConf.is_config(cfg[key]) else cfg[key] for key in cfg}
 
 
-def check_job_section(job_cfg: dict) -> None:
-    """``job.threads`` >= 1, ``job.retries``, ``job.renders``, ``job.round_images`` >= 0."""
-    for key, least in JOB_MINIMUMS.items():
-        if job_cfg.get(key) is not None:
-            _minimum(f"job.{key}", job_cfg[key], least)
+def check_declared(cfg: DictConfig) -> None:
+    """Every value against its declared bound (``experiment.schema``): one ConfigError listing every
+    bad value, key by key, before any job is built."""
+    problems = config_problems(plain_config(cfg))
+    if problems:
+        raise ConfigError(problems[0] if len(problems) == 1 else
+                          f"{len(problems)} bad values, nothing was started:\n  " + "\n  ".join(problems))
 
 
 def expand_jobs(cfg: DictConfig) -> list[Job]:
@@ -144,9 +146,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
         raise ConfigError("dataset: no dataset selected")
     if not methods:
         raise ConfigError("method: no method selected")
-    if job_cfg["kind"] not in JOB_KINDS:
-        raise ConfigError(f"job.kind: must be one of {JOB_KINDS}, got {job_cfg['kind']!r}")
-    check_job_section(job_cfg)
+    check_declared(cfg)
     world = world_section(_container(cfg, "world") or {"kind": "dataset"})
     try:
         splat = job_form(splat)
@@ -156,8 +156,13 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
     jobs = []
     output_dir = Path(str(cfg.output_dir)).absolute()  # job folders: the same wherever the job runs
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
+    # a preset's settings for a dataset that the list does not select (e.g. experiment=debug
+    # dataset=shared: debug sizes the generated scene) hold none of these keys: not a dataset here
+    datasets = {d: v for d, v in datasets.items() if set(v or {}) & DATASET_KEYS}
+    if not datasets:
+        raise ConfigError("dataset: no dataset selected")
     for dname, dset in datasets.items():
-        missing = sorted({"format", "root", "scenes"} - set(dset or {}))
+        missing = sorted(DATASET_KEYS - set(dset or {}))
         if missing:
             raise ConfigError(f"dataset.{dname}: missing keys {missing} (a preset may configure a dataset "
                               f"that the dataset list does not select; selected: {sorted(datasets)})")
@@ -228,9 +233,6 @@ def episode_config(job: Job) -> EpisodeConfig:
     """The core's plain dataclass for a job (the core never sees a DictConfig)."""
     splat = dict(job.splat)
     check_keys("splat", splat, SPLAT_KEYS)
-    for key in POSITIVE_SPLAT:  # 0 is not "unset": it would silently mean the preset's value
-        if splat.get(key) is not None:
-            _minimum(f"splat.{key}", splat[key], 1)
     try:
         base = episode_preset(splat["preset"])
         fit = base.fit
@@ -240,25 +242,26 @@ def episode_config(job: Job) -> EpisodeConfig:
             fit = fit.with_changes(image_width=int(splat["image_width"]))
         if splat.get("max_gaussians"):
             fit = fit.with_changes(densify=replace(fit.densify, max_gaussians=int(splat["max_gaussians"])))
-        if splat.get("fit"):
-            try:
-                fit = fit.with_overrides(dict(splat["fit"]))
-            except ValueError as err:
-                raise ConfigError(f"splat.fit.{err}") from None
-        fit = fit.with_changes(seed=job.seed)
-        protocol = _protocol(job.protocol)
-        changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
-                                          "views_per_round", "pool_keep_fraction", "lpips", "init")
-                   if splat.get(k) is not None}
-        if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
-            changes["curve_test_views"] = None
-        changes.update(world_changes(job.world))
+    except (ValueError, TypeError) as err:
+        raise ConfigError(under(err, "splat.")) from None
+    if splat.get("fit"):
+        try:
+            fit = fit.with_overrides(dict(splat["fit"]))
+        except ValueError as err:
+            raise ConfigError(under(err, "splat.fit.")) from None
+    fit = fit.with_changes(seed=job.seed)
+    protocol = _protocol(job.protocol)
+    changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
+                                      "views_per_round", "pool_keep_fraction", "lpips", "init")
+               if splat.get(k) is not None}
+    if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
+        changes["curve_test_views"] = None
+    changes.update(world_changes(job.world))
+    try:
         return replace(base, fit=fit, protocol=protocol, strategy=job.strategy,
                        strategy_options=dict(job.options), seed=job.seed, masks=bool(job.masks), **changes)
-    except ConfigError:
-        raise
-    except (ValueError, TypeError) as err:
-        raise ConfigError(f"splat/protocol of job {job.method} on {job.scene}: {err}") from None
+    except (ValueError, TypeError) as err:  # EpisodeConfig's fields are the splat section's keys
+        raise ConfigError(under(err, "splat.")) from None
 
 
 WORLD_KEYS = {"kind", "model", "search"}
@@ -293,7 +296,7 @@ def _protocol(data: dict) -> ProtocolConfig:
     try:
         return ProtocolConfig(**data)
     except ValueError as err:
-        raise ConfigError(str(err) if str(err).startswith("protocol") else f"protocol: {err}") from None
+        raise ConfigError(under(err, "protocol.")) from None
 
 
 def uncertainty_config(job: Job) -> UncertaintyConfig:
@@ -308,6 +311,8 @@ def validate_job(job: Job) -> None:
     job.episode  # resolved once here, at start-up; a bad value is a config error naming the key
     try:
         strategy = make_strategy(job.strategy, **job.options)
+    except BoundsError as err:
+        raise ConfigError(err.under(f"method.{job.method}.options.")) from None
     except ValueError as err:
         raise ConfigError(f"method.{job.method}: {err}") from None
     if job.world is not None and not scores_any_pose(strategy):

@@ -91,7 +91,9 @@ def format_duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def plan_text(name: str, planned: list[PlannedJob], parallel: int) -> str:
+def plan_text(name: str, planned: list[PlannedJob], parallel: int, warnings: list[str] = ()) -> str:
+    """The job table, then ``warnings`` (allowed values far above anything measured), then the
+    summary with the estimate."""
     header = ["#", "dataset", "scene", "method", "seed", "axes", "config hash", "status", "estimate"]
     rows = []
     for p in planned:
@@ -110,4 +112,5 @@ def plan_text(name: str, planned: list[PlannedJob], parallel: int) -> str:
                     f"({len(known)} of {len(todo)} estimated from finished jobs of the same kind)")
     elif todo:
         summary += "; no finished job of the same kind to estimate the duration from"
-    return "\n".join(lines + ["", summary, "nothing was started (plan=true)"])
+    notes = [f"warning: {w}" for w in warnings]
+    return "\n".join(lines + [""] + notes + [summary, "nothing was started (plan=true)"])

@@ -175,21 +175,31 @@ def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = Tr
     empty sector ...), found by building the protocol's views before any job starts; with
     ``decode``, one per image those views use that cannot be decoded (a zero-byte file would
     otherwise fail the job that happens to pick it, mid-sweep)."""
-    errors, checked = [], set()
+    errors, checked, built = [], set(), {}
     used: dict[tuple[str, str], set[int]] = {}
     for job in jobs:
         if job.kind != "episode" or scene_key(job) not in scenes:
             continue
         key = (scene_key(job), json.dumps(job.protocol, sort_keys=True))
+        if key not in built:
+            try:
+                built[key] = build_protocol(scenes[scene_key(job)], job.episode.protocol)
+            except ValueError as err:
+                where = f" ({job.setting})" if job.setting else ""
+                errors.append(f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}")
+                built[key] = None
+        views = built[key]
+        if views is None:
+            continue
+        picks = views.budget - len(views.initial_ids)
+        if job.episode.views_per_round > picks and (job.dataset, job.scene, picks) not in checked:
+            checked.add((job.dataset, job.scene, picks))
+            errors.append(f"splat.views_per_round: {job.episode.views_per_round} is more than the {picks} picks "
+                          f"the protocol leaves on dataset.{job.dataset} scene {job.scene!r} (budget "
+                          f"{views.budget}, {len(views.initial_ids)} initial views)")
         if key in checked:
             continue
         checked.add(key)
-        try:
-            views = build_protocol(scenes[scene_key(job)], job.episode.protocol)
-        except ValueError as err:
-            where = f" ({job.setting})" if job.setting else ""
-            errors.append(f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}")
-            continue
         used.setdefault((scene_key(job), views.pool_split), set()).update(
             views.initial_ids + views.pool_ids + views.probe_ids)
         used.setdefault((scene_key(job), views.test_split), set()).update(views.test_ids)
@@ -229,6 +239,16 @@ def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: P
         LOG.info(f"[{name}] note: {count} skipped job(s) were computed by code {version}, this is "
                  f"{current}; their results are kept. Use a new output_dir to recompute them "
                  f"(or delete {output_dir / 'records.parquet'} and the MLflow runs).")
+
+
+def no_device_here(executor, jobs: list[Job]) -> None:
+    """``job.device=cuda`` for jobs that run on this machine, which has no CUDA device: one
+    ConfigError now (each job would otherwise fail at its first tensor)."""
+    import torch
+    if executor.runs_here and any(j.execution.device == "cuda" for j in jobs) and not torch.cuda.is_available():
+        raise ConfigError("job.device: 'cuda', but the jobs run on this machine and it has no CUDA device "
+                          "(torch.cuda.is_available() is False): use job.device=cpu, or run on a cluster "
+                          "whose nodes have GPUs (executor.address / executor=slurm)")
 
 
 def compiles_here(executor, jobs: list[Job]) -> bool:
@@ -335,6 +355,7 @@ class SweepRun:
         warn_stale(self.name, self.records, {j.config_hash for j in self.jobs} & done, self.output_dir)
         self.folder.write_jobs(self.jobs)
         self.executor = make_executor(self.resolved["executor"], self.output_dir)
+        no_device_here(self.executor, self.todo)
         return scenes
 
     def on_done(self, job: Job, outcome: JobOutcome) -> None:

@@ -45,7 +45,7 @@ def compile_kernels(say: Callable[[str], None]) -> float | None:
     from pipeline.data.synthetic import generate
     start, compiling = time.perf_counter(), compile_seconds()
     with tempfile.TemporaryDirectory() as tmp:
-        scene_dir = generate(Path(tmp) / "scene", seed=0, size=24, n_train=8, n_test=3)
+        scene_dir = generate(Path(tmp) / "scene", seed=0, size=32, n_train=8, n_test=3)
         cfg = tiny_episode(strategy="gopre")
         run_episode(load_scene(scene_dir, width=cfg.fit.image_width), cfg)
     seconds = time.perf_counter() - start

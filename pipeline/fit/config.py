@@ -7,54 +7,63 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 
+from pipeline.bounds import BOOL, FLOAT, INT, bounded, require_bounds
+
 
 @dataclass(frozen=True)
 class DensifyConfig:
     """3DGS adaptive density control (clone / split by screen-space gradient, prune)."""
 
-    start: int = 500              # first iteration that densifies
-    stop: int = 15_000            # last iteration that densifies
-    interval: int = 100
-    grad_threshold: float = 0.0002  # mean NDC-space gradient norm of means2d
-    percent_dense: float = 0.01   # clone if max scale <= this * scene extent, else split
-    split_count: int = 2
-    split_scale_div: float = 1.6  # 0.8 * split_count
-    min_opacity: float = 0.005
-    max_screen_radius: float = 20.0  # px; applied after ``prune_large_after``
-    max_world_scale: float | None = 0.1  # * scene extent; after ``prune_large_after``; None: off
+    start: int = bounded(500, INT, ge=0)                  # first iteration that densifies
+    stop: int = bounded(15_000, INT, ge=0)                # last iteration that densifies
+    interval: int = bounded(100, INT, ge=1)
+    grad_threshold: float = bounded(0.0002, FLOAT, gt=0)  # mean NDC-space gradient norm of means2d
+    percent_dense: float = bounded(0.01, FLOAT, gt=0)     # clone if max scale <= this * scene extent, else split
+    split_count: int = bounded(2, INT, ge=1)
+    split_scale_div: float = bounded(1.6, FLOAT, gt=0)    # 0.8 * split_count
+    min_opacity: float = bounded(0.005, FLOAT, ge=0, lt=1)
+    max_screen_radius: float = bounded(20.0, FLOAT, gt=0)  # px; applied after ``prune_large_after``
+    max_world_scale: float | None = bounded(0.1, FLOAT, gt=0, nullable=True)  # * scene extent; after
+    # ``prune_large_after``; None: off.
     # 3DGS prunes big Gaussians from its first opacity reset on (iteration 3000 of 30k, a tenth of
     # the run); kept as its own field so a recipe whose resets are off or rescaled keeps that switch
-    prune_large_after: int = 3000
-    opacity_reset_interval: int = 3000
-    opacity_reset_value: float = 0.01
-    periodic_opacity_reset: bool = True  # False: only explicit resets (the active loop's policy)
-    max_gaussians: int | None = None  # cap; None = unlimited (paper)
+    prune_large_after: int = bounded(3000, INT, ge=0)
+    opacity_reset_interval: int = bounded(3000, INT, ge=1)
+    opacity_reset_value: float = bounded(0.01, FLOAT, gt=0, lt=1)
+    periodic_opacity_reset: bool = bounded(True, BOOL)  # False: only explicit resets (the active loop's policy)
+    max_gaussians: int | None = bounded(None, INT, ge=1, nullable=True, usual_max=5_000_000)  # cap; None = unlimited
 
 
 @dataclass(frozen=True)
 class LearningRates:
-    means_init: float = 1.6e-4    # * scene extent, decayed exponentially to means_final
-    means_final: float = 1.6e-6
-    sh0: float = 2.5e-3
-    shN: float = 2.5e-3 / 20
-    logit_opacities: float = 0.05
-    log_scales: float = 5e-3
-    quats: float = 1e-3
+    means_init: float = bounded(1.6e-4, FLOAT, gt=0)   # * scene extent, decayed exponentially to means_final
+    means_final: float = bounded(1.6e-6, FLOAT, gt=0)
+    sh0: float = bounded(2.5e-3, FLOAT, ge=0)
+    shN: float = bounded(2.5e-3 / 20, FLOAT, ge=0)
+    logit_opacities: float = bounded(0.05, FLOAT, ge=0)
+    log_scales: float = bounded(5e-3, FLOAT, ge=0)
+    quats: float = bounded(1e-3, FLOAT, ge=0)
 
 
 @dataclass(frozen=True)
 class FitConfig:
-    iterations: int = 30_000
-    sh_degree: int = 3
-    sh_degree_interval: int = 1000   # raise the active SH degree every this many iterations
-    ssim_weight: float = 0.2         # loss = (1 - w) L1 + w (1 - SSIM)
+    iterations: int = bounded(30_000, INT, ge=1, usual_max=300_000)
+    sh_degree: int = bounded(3, INT, ge=0, le=3)
+    sh_degree_interval: int = bounded(1000, INT, ge=1)  # raise the active SH degree every this many iterations
+    ssim_weight: float = bounded(0.2, FLOAT, ge=0, le=1)  # loss = (1 - w) L1 + w (1 - SSIM)
     lr: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
-    image_width: int | None = None   # train at this width (None = full resolution)
-    init_points: int = 100_000       # random init in the scene box when there is no point cloud
-    init_opacity: float = 0.1
-    seed: int = 0
-    lr_decay_iterations: int | None = None  # the means' lr decays over this many (None: iterations)
+    image_width: int | None = bounded(None, INT, ge=8, nullable=True, usual_max=4096)  # train at this
+    # width (None = full resolution)
+    init_points: int = bounded(100_000, INT, ge=1, usual_max=10_000_000)  # random init in the scene box
+    # when there is no point cloud
+    init_opacity: float = bounded(0.1, FLOAT, gt=0, lt=1)
+    seed: int = bounded(0, INT, ge=0)
+    lr_decay_iterations: int | None = bounded(None, INT, ge=1, nullable=True)  # the means' lr decays over
+    # this many (None: iterations)
+
+    def __post_init__(self) -> None:
+        require_bounds(self)  # every declared field, the nested lr and densify groups included
 
     def with_changes(self, **changes) -> "FitConfig":
         return replace(self, **changes)
