@@ -308,3 +308,27 @@ def test_a_pose_scorer_costs_any_camera_as_select_scores_it_as_a_candidate(ctx_p
     assert scorer.maximizes == (name != "gopre")
     off_pool = sphere_cameras(2, 32, 32, seed=11)
     assert torch.isfinite(scorer.cost(off_pool)).all()
+
+
+@pytest.mark.parametrize("helper", ["sparse_fishers", "fisher_vectors"])
+def test_a_fisher_pass_heard_chunk_by_chunk_gives_the_same_bits(ctx_parts, helper, monkeypatch):
+    """Progress inside a selection: with a listener the Fisher of the views is computed a chunk
+    at a time and each chunk heard; every view's numbers are those of the one-call pass."""
+    from pipeline.acquisition import base
+    monkeypatch.setattr(base, "FISHER_CHUNK", 4)
+    g, pool, _, _ = ctx_parts
+    quiet = make_ctx(ctx_parts)
+    heard = []
+    loud = make_ctx(ctx_parts)
+    loud.on_fisher = lambda done, total: heard.append((done, total))
+    spec = base.FisherSpec()
+    one, chunked = getattr(base, helper)(quiet, pool, spec), getattr(base, helper)(loud, pool, spec)
+    assert heard == [(4, 6), (6, 6)]
+    assert loud.fisher_views == quiet.fisher_views == 6
+    if helper == "fisher_vectors":
+        assert torch.equal(one, chunked)
+    else:
+        assert len(one) == len(chunked) == 6
+        assert all(torch.equal(a.ids, b.ids) and torch.equal(a.rows, b.rows) for a, b in zip(one, chunked))
+    picks = [make_strategy("gopre").select(c, count=2).chosen for c in (quiet, loud)]
+    assert picks[0] == picks[1]

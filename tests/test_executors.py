@@ -2,6 +2,7 @@
 job runs under the driver's code and packages or is refused, its state lives under output_dir
 wherever it runs, and its CPU reservation holds."""
 
+import re
 import json
 import os
 import subprocess
@@ -378,17 +379,23 @@ def test_the_eta_comes_from_the_first_round_before_any_job_finishes(capsys):
     assert capsys.readouterr().out.strip().endswith("sweep ETA 13.5 min (from the rounds so far)")
 
 
-def test_progress_inside_a_round_reaches_the_console_and_the_job_log(tmp_path, capsys):
-    """At the paper preset a round is thousands of steps: a line at most every job.progress_seconds."""
+def test_progress_inside_a_round_reaches_the_console_and_the_job_log(tmp_path, capsys, monkeypatch):
+    """At the paper preset a round is thousands of steps and a selection hundreds of Fisher views:
+    a line at most every job.progress_seconds, for both."""
+    from pipeline.acquisition import base
     from pipeline.experiment.executors.slurm import message_of, message_line
     from pipeline.experiment.outcome import StepProgress
     from pipeline.experiment.sweep import run_sweep
-    run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "splat.iterations=1200",
-                        "job.progress_seconds=0.3", "executor=local", "tracking=none", f"output_dir={tmp_path}"]))
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if "training step " in ln]
-    assert lines and all("random on generated" in ln for ln in lines), lines
+    monkeypatch.setattr(base, "FISHER_CHUNK", 2)  # the debug pool is smaller than one chunk
+    run_sweep(composed(["experiment=debug", *TINY, "method=[fisherrf]", "splat.iterations=1200",
+                        "job.progress_seconds=0.001", "executor=local", "tracking=none", f"output_dir={tmp_path}"]))
+    out = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in out if "training step " in ln]
+    assert lines and all("fisherrf on generated" in ln for ln in lines), lines
+    scoring = [ln for ln in out if "selection, Fisher of " in ln]
+    assert scoring and all(re.search(r"round \d/\d: selection, Fisher of \d+/\d+ views", ln) for ln in scoring), out
     log = next(tmp_path.glob("jobs/*/log.txt")).read_text()
-    assert log.count("training step ") == len(lines)
+    assert log.count("training step ") == len(lines) and log.count("selection, Fisher of ") == len(scoring)
     step = StepProgress(1, 3, 40, 120, 5.0)
     assert message_of(message_line(step)) == step  # the SLURM and Ray channels carry it as is
     assert step.text() == "round 2/3: training step 40/120 (5 s into the job)"

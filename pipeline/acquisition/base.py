@@ -41,6 +41,9 @@ class SelectionContext:
     # "sector", "start_deg": 0, "width_deg": 120, "clockwise": True, "up": [x, y, z]}); None
     # when the whole scene is the goal (the global and sparse protocols)
     goal_manifold: dict | None = None
+    # hears (views whose Fisher is computed, of the views asked) as a Fisher pass goes, a chunk of
+    # ``FISHER_CHUNK`` views at a time (progress a user can follow inside a long selection)
+    on_fisher: Callable[[int, int], None] | None = None
     fisher_seconds: float = field(default=0.0, init=False)  # time spent in Fisher passes
     fisher_views: int = field(default=0, init=False)
 
@@ -109,23 +112,39 @@ def gain_pose_scorer(ctx: SelectionContext, spec: FisherSpec,
     return PoseScorer(cost, maximizes=True)
 
 
-def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:
-    """Flattened exact diagonal Fisher of each view, [C, D] float64 (C >= 1: callers never ask for
-    the Fisher of no view)."""
+FISHER_CHUNK = 16  # views per Fisher call when someone listens (each view's numbers do not depend on it)
+
+
+def in_chunks(ctx: SelectionContext, cameras: Cameras, compute: Callable[[Cameras], object]) -> list:
+    """``[compute(cameras)]``, timed and counted into ``ctx``; with ``ctx.on_fisher`` set, the
+    outputs of ``FISHER_CHUNK`` views at a time, reporting (done, total) after each chunk."""
     start = time.perf_counter()
-    out = view_fisher(ctx.gaussians, cameras, ctx.background, spec, ctx.settings).flatten(1)
+    if ctx.on_fisher is None:
+        out = [compute(cameras)]
+    else:
+        out = []
+        for first in range(0, len(cameras), FISHER_CHUNK):
+            last = min(first + FISHER_CHUNK, len(cameras))
+            out.append(compute(cameras[list(range(first, last))]))
+            ctx.on_fisher(last, len(cameras))
     ctx.fisher_seconds += time.perf_counter() - start
     ctx.fisher_views += len(cameras)
     return out
+
+
+def fisher_vectors(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> Tensor:
+    """Flattened exact diagonal Fisher of each view, [C, D] float64 (C >= 1: callers never ask for
+    the Fisher of no view)."""
+    chunks = in_chunks(ctx, cameras, lambda cams: view_fisher(ctx.gaussians, cams, ctx.background, spec,
+                                                              ctx.settings).flatten(1))
+    return chunks[0] if len(chunks) == 1 else torch.cat(chunks)
 
 
 def sparse_fishers(ctx: SelectionContext, cameras: Cameras, spec: FisherSpec) -> list[SparseFisher]:
     """``fisher_vectors`` as one compact ``SparseFisher`` per view (timed and counted the same)."""
-    start = time.perf_counter()
-    out = view_fisher_sparse(ctx.gaussians, cameras, ctx.background, spec, ctx.settings)
-    ctx.fisher_seconds += time.perf_counter() - start
-    ctx.fisher_views += len(cameras)
-    return out
+    chunks = in_chunks(ctx, cameras, lambda cams: view_fisher_sparse(ctx.gaussians, cams, ctx.background, spec,
+                                                                     ctx.settings))
+    return [view for chunk in chunks for view in chunk]
 
 
 def sparse_fishers_reusing(ctx: SelectionContext, cameras: Cameras, ids: list[int] | None,

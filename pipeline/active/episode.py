@@ -108,6 +108,7 @@ class Episode:
                  folder: Path | None = None):
         self.scene, self.cfg, self.folder = scene, cfg, folder
         self.on_step = None  # hears each training step (run_episode's on_step)
+        self.on_fisher = None  # hears (views done, views asked) of each Fisher pass of a selection
         self.device = torch.device(device or "cpu")
         self.background = scene.background.to(self.device)
         self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
@@ -239,7 +240,7 @@ class Episode:
                                self.taken_cameras(), self.background, self.generator,
                                self.pool.cameras[rec.probes], self.taken_images(),
                                self.trainer.settings, taken_ids=list(self.taken), probe_ids=list(rec.probes),
-                               goal_manifold=self.goal_manifold())
+                               goal_manifold=self.goal_manifold(), on_fisher=self.on_fisher)
         cpu, compiling = time.process_time(), compile_seconds()
         sel = self.strategy.select(ctx, count)
         rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)
@@ -345,19 +346,21 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
                 progress: bool = False, device: str | torch.device | None = None,
                 on_selection: Callable[["Episode", RoundRecord], None] | None = None,
                 on_resume: Callable[[int], None] | None = None,
-                on_step: Callable[[int, int, int], None] | None = None) -> EpisodeResult:
+                on_step: Callable[..., None] | None = None) -> EpisodeResult:
     """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
     checkpointed), including the final one; it may raise to stop the episode. ``device``: where
     the model and images live (default CPU); records are identical in form on every device.
     ``on_selection(episode, record)`` sees the episode after each pick, before the post-selection
     policy changes the model (it must not change the episode). ``on_resume(rounds)`` hears how many
-    finished rounds a checkpoint restored. ``on_step(round, done, total)`` hears every training
-    step of a round (``round`` counts from 0; the final training is the last round)."""
+    finished rounds a checkpoint restored. ``on_step(round, done, total, phase)`` hears every training
+    step of a round (``phase`` "training"; ``round`` counts from 0; the final training is the last
+    round) and, with ``phase`` "fisher", every chunk of views of a selection's Fisher passes."""
     start = time.perf_counter()
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
     ep = Episode(scene, cfg, device, folder)
     if on_step is not None:
-        ep.on_step = lambda done, total, info: on_step(len(ep.records), done, total)
+        ep.on_step = lambda done, total, info: on_step(len(ep.records), done, total, "training")
+        ep.on_fisher = lambda done, total: on_step(len(ep.records), done, total, "fisher")
     key = fingerprint(ep.fingerprint_data())
     state = load_checkpoint(folder, key)
     if state is not None:

@@ -142,12 +142,12 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
         _log(folder, f"resuming from the checkpoint after {done} round(s)")
     said = [time.perf_counter()]
 
-    def on_step(round_: int, done: int, total: int):  # inside a round: every progress_seconds
+    def on_step(round_: int, done: int, total: int, phase: str = "training"):  # inside a round: every progress_seconds
         now = time.perf_counter()
         if now - said[0] < job.execution.progress_seconds or done == total:
             return
         said[0] = now
-        step = StepProgress(round_, rounds, done, total, round(time.time() - started, 1))
+        step = StepProgress(round_, rounds, done, total, round(time.time() - started, 1), phase)
         _log(folder, step.text())
         if report is not None:
             report(step)

@@ -91,7 +91,8 @@ class JobOutcome:
 @dataclass
 class StepProgress:
     """Progress inside a round of a running job, said every ``job.progress_seconds``: the round
-    (from 0; the final training is the last), its training steps done of its total, and the seconds
+    (from 0; the final training is the last), its training steps done of its total (``phase``
+    "training") or the views of a selection's Fisher pass done of its views ("fisher"), and the seconds
     since the job (this attempt) began. Travels as ``to_dict()`` beside the round messages."""
 
     round: int
@@ -99,10 +100,13 @@ class StepProgress:
     done: int
     total: int
     seconds: float
+    phase: str = "training"  # training steps, or "fisher": views of a selection's Fisher pass
 
     def text(self) -> str:
         what = "final training" if self.round + 1 == self.rounds else f"round {self.round + 1}/{self.rounds}"
-        return f"{what}: training step {self.done}/{self.total} ({self.seconds:.0f} s into the job)"
+        doing = (f"training step {self.done}/{self.total}" if self.phase == "training" else
+                 f"selection, Fisher of {self.done}/{self.total} views")
+        return f"{what}: {doing} ({self.seconds:.0f} s into the job)"
 
     def to_dict(self) -> dict:
         return {"progress": asdict(self)}
