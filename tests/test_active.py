@@ -342,3 +342,25 @@ def test_compilation_is_timed_apart_from_selection(scene_dir):
         assert rec.selection_seconds < 0.5 * wall  # the compile is not in the selection's time
         assert rec.selection_seconds + rec.compile_seconds == pytest.approx(wall, abs=0.05)
         assert rec.selection_cpu_seconds < rec.compile_seconds
+
+
+@pytest.mark.parametrize("recovery,resets", [(None, 2), (100, 1), (1000, 0)])
+def test_reset_recovery_skips_a_reset_the_next_round_could_not_recover_from(scene_dir, monkeypatch,
+                                                                           recovery, resets):
+    """tiny: rounds of 40 (2 views) and 60 (3 views) steps, then 140 to the end. A pick's reset
+    needs the round after it to train at least ``reset_recovery`` steps."""
+    from pipeline.fit.trainer import Trainer
+    calls = []
+    original = Trainer.reset_opacity
+    monkeypatch.setattr(Trainer, "reset_opacity", lambda self, value=None: (calls.append(self.step),
+                                                                           original(self, value)))
+    cfg = tiny_episode(strategy="coverage", reset_recovery=recovery)
+    result = run_episode(load(scene_dir, cfg), cfg)
+    assert len(calls) == resets
+    if recovery == 100:
+        assert calls == [100]  # after the second pick, before the 140 final steps
+    if resets == 0:  # no reset at all: the same episode as continuing (tiny has no periodic reset)
+        same = tiny_episode(strategy="coverage", post_selection="continue")
+        assert run_episode(load(scene_dir, same), same).final.psnr == result.final.psnr
+    with pytest.raises(ValueError, match="reset_recovery: 0 is not an integer >= 1, or null"):
+        tiny_episode(reset_recovery=0)

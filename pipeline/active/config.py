@@ -50,6 +50,10 @@ class EpisodeConfig:
     world_model: str | None = None      # twin: "ply:PATH" of the reference splat
     search: dict = field(default_factory=dict)  # pose search (world != dataset): SEARCH_KEYS
     masks: bool = bounded(False, BOOL)  # train and evaluate on the capture's masked-in pixels only
+    # reset_opacity only: a round that trains fewer iterations than this after its pick keeps the
+    # opacities (a reset needs that many steps to recover before the round's evaluation); None:
+    # reset after every pick (the paper)
+    reset_recovery: int | None = bounded(None, INT, ge=1, nullable=True)
 
     def __post_init__(self) -> None:
         require_bounds(self)  # each declared field; the relations between fields below
@@ -103,6 +107,8 @@ class EpisodeConfig:
             del out["init"]
         if not out["masks"]:  # a checkpoint of an unmasked episode matches as before
             del out["masks"]
+        if out["reset_recovery"] is None:  # so does one of the paper's reset rule
+            del out["reset_recovery"]
         if self.world == "dataset":  # so are the world's fields (issue 28)
             for key in ("world", "world_model", "search"):
                 del out[key]

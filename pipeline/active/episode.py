@@ -307,8 +307,19 @@ class Episode:
             self.trainer.nonfinite_steps = skipped
             return
         self.trainer.set_views(self.taken_cameras(), self.taken_images(), self.taken_masks())
-        if policy == "reset_opacity":
+        if policy == "reset_opacity" and self.recovers_from_a_reset():
             self.trainer.reset_opacity()
+
+    def next_round_iterations(self) -> int:
+        """What the round after the current pick trains before its evaluation."""
+        upcoming = len(self.records) + 1  # after_selection runs before the current round is recorded
+        rounds = self.schedule.round_iterations
+        return rounds[upcoming] if upcoming < len(rounds) else self.schedule.final_iterations
+
+    def recovers_from_a_reset(self) -> bool:
+        """``reset_recovery``: reset only when the next round trains at least that many steps."""
+        need = self.cfg.reset_recovery
+        return need is None or self.next_round_iterations() >= need
 
     def fingerprint_data(self) -> dict:
         """What a checkpoint must match: the config and, when the rule rescaled it, the fit's

@@ -98,7 +98,8 @@ class TrackingSection:
 SPLAT_FIELDS = {"iterations": (FitConfig, "iterations"), "image_width": (FitConfig, "image_width"),
                 "max_gaussians": (DensifyConfig, "max_gaussians"),
                 **{name: (EpisodeConfig, name) for name in ("epochs_per_view", "curve_test_views", "post_selection",
-                                                            "views_per_round", "pool_keep_fraction", "lpips")}}
+                                                            "views_per_round", "pool_keep_fraction", "lpips",
+                                                            "reset_recovery")}}
 
 
 # FitConfig fields a sweep sets through other keys: ``splat.iterations`` (it rescales every schedule)
