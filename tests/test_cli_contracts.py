@@ -15,7 +15,7 @@ from pipeline.experiment.build import config_hash, expand_jobs
 
 BIN = Path(sys.executable).parent
 TINY = ["experiment=debug", "splat.iterations=60", "protocol.budget=3", "protocol.probes=2",
-        "dataset.generated.generate.size=24", "dataset.generated.generate.n_train=8",
+        "dataset.generated.generate.size=24", "splat.image_width=24", "dataset.generated.generate.n_train=8",
         "dataset.generated.generate.n_test=4"]
 
 
