@@ -134,12 +134,18 @@ def bound_of(f) -> Bound | None:
     return f.metadata.get("bound")
 
 
+def _default(f):
+    """A field's default value (its factory's product), MISSING when it has none."""
+    if f.default is not MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not MISSING else MISSING
+
+
 def declared(cls, where: str = "") -> list[tuple[str, Bound, object]]:
     """Every declared key of ``cls`` (nested dataclass fields as dotted keys): (key, bound, default)."""
     out = []
     for f in fields(cls):
-        default = f.default if f.default is not MISSING else (
-            f.default_factory() if f.default_factory is not MISSING else MISSING)
+        default = _default(f)
         if is_dataclass(default):
             out += declared(type(default), f"{where}{f.name}.")
         elif bound_of(f) is not None:
@@ -147,43 +153,35 @@ def declared(cls, where: str = "") -> list[tuple[str, Bound, object]]:
     return out
 
 
-def violations(cls, data: dict, where: str = "") -> list[str]:
-    """One line per value of ``data`` (a plain mapping, maybe partial) that breaks its declared
-    bound in ``cls``: '<where><key>: <value> is not <what is allowed>'. Keys ``cls`` does not
-    declare are left to the caller (unknown keys have their own check)."""
-    out = []
+def _present(cls, data: dict, where: str):
+    """(dotted key, bound, value) of each value of ``data`` (a plain mapping, maybe partial) that
+    ``cls`` declares, nested groups walked; keys ``cls`` does not declare are skipped (unknown
+    keys have their own check)."""
     by_name = {f.name: f for f in fields(cls)}
     for key, value in (data or {}).items():
         f = by_name.get(key)
         if f is None:
             continue
-        default = f.default if f.default is not MISSING else (
-            f.default_factory() if f.default_factory is not MISSING else None)
+        default = _default(f)
         if is_dataclass(default) and isinstance(value, dict):
-            out += violations(type(default), value, f"{where}{key}.")
-            continue
-        bound = bound_of(f)
-        if bound is not None and bound.problem(value) is not None:
-            out.append(f"{where}{key}: {value!r} is not {bound.describe()}")
-    return out
+            yield from _present(type(default), value, f"{where}{key}.")
+        elif bound_of(f) is not None:
+            yield f"{where}{key}", bound_of(f), value
+
+
+def violations(cls, data: dict, where: str = "") -> list[str]:
+    """One line per value of ``data`` that breaks its declared bound in ``cls``:
+    '<where><key>: <value> is not <what is allowed>'."""
+    return [f"{key}: {value!r} is not {bound.describe()}" for key, bound, value in _present(cls, data, where)
+            if bound.problem(value) is not None]
 
 
 def warnings(cls, data: dict, where: str = "") -> list[str]:
     """Allowed values above their declared ``usual_max``: one line each (for a plan)."""
-    out = []
-    by_name = {f.name: f for f in fields(cls)}
-    for key, value in (data or {}).items():
-        f = by_name.get(key)
-        if f is None:
-            continue
-        if isinstance(value, dict) and f.default_factory is not MISSING and is_dataclass(f.default_factory()):
-            out += warnings(type(f.default_factory()), value, f"{where}{key}.")
-            continue
-        bound = bound_of(f)
-        if (bound is not None and bound.usual_max is not None and bound.problem(value) is None
-                and value is not None and value > bound.usual_max):
-            out.append(f"{where}{key}={value!r} is far above anything measured (usually <= {_num(bound.usual_max)})")
-    return out
+    return [f"{key}={value!r} is far above anything measured (usually <= {_num(bound.usual_max)})"
+            for key, bound, value in _present(cls, data, where)
+            if bound.usual_max is not None and value is not None and bound.problem(value) is None
+            and value > bound.usual_max]
 
 
 def _plain(obj) -> dict:
