@@ -35,3 +35,35 @@ def test_a_published_episode_reproduces_its_digits(episode, monkeypatch):
     assert row["selected"] == episode["selected"]
     assert row["final_psnr_full"] == episode["final_psnr_full"], (
         f"{episode['command']}: {row['final_psnr_full']!r}, published {episode['final_psnr_full']!r}")
+
+
+def readme_demo_table() -> dict[str, float]:
+    """The README's demo table: method -> generated PSNR as printed (two decimals)."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("| Method | generated PSNR |"))
+    rows = {}
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip().strip("*_").replace("<ins>", "").replace("</ins>", "") for c in line.strip("|").split("|")]
+        rows[cells[0]] = float(cells[1])
+    return rows
+
+
+@pytest.mark.slow
+def test_the_demo_gives_the_readme_table(tmp_path):
+    """`make demo` on a fresh clone prints the README's table: the demo sweep (run here without Ray
+    or MLflow, which give the same numbers) ends each method at the README's PSNR."""
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.cli.run import CONF_DIR
+    from pipeline.experiment.records import RecordsFile
+    from pipeline.experiment.sweep import run_sweep
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", ["experiment=demo", "executor=local", "tracking=none", "job.round_models=false",
+                                 f"output_dir={tmp_path / 'demo'}"])
+    run_sweep(cfg)
+    finals = RecordsFile(tmp_path / "demo").frame
+    finals = finals[finals["kind"] == "final"]
+    got = {m: round(float(p), 2) for m, p in zip(finals["method"], finals["psnr"])}
+    assert got == readme_demo_table()
