@@ -33,7 +33,7 @@ from pipeline.fisher.exact import FisherSpec
 from pipeline.splat import Gaussians, RenderSettings
 from pipeline.splat.render import RenderOutput
 
-API_VERSION = "1.0"
+API_VERSION = "1.1"  # 1.1: SelectionContext.on_fisher (progress of a Fisher pass)
 
 __all__ = ["API_VERSION", "ENTRY_POINT_GROUP", "Cameras", "FisherSpec", "Gaussians", "ModelDoors",
            "PluginIdentity", "PoseScorer", "RenderOutput", "RenderSettings", "Selection", "SelectionContext",

@@ -199,10 +199,14 @@ def test_the_cluster_extra_joins_through_ray_client_and_the_jobs_api(tmp_path, c
         output, _ = through_client.communicate(timeout=600)
         assert through_client.returncode == 0, output[-3000:]
         assert json.loads((tmp_path / "client" / "summary.json").read_text())["finished"] == 1
-        submitted = subprocess.run(
-            [str(ray_bin()), "job", "submit", "--address", f"http://127.0.0.1:{dashboard_port}", "--",
-             str(BIN / "gopre-run"), *common, "executor.address=auto", f"output_dir={tmp_path / 'job'}"],
-            capture_output=True, text=True, timeout=600, env={**os.environ, **TOKEN_ENV})
+        for _ in range(20):  # the head's job agent comes up after its dashboard (slower on a loaded machine)
+            submitted = subprocess.run(
+                [str(ray_bin()), "job", "submit", "--address", f"http://127.0.0.1:{dashboard_port}", "--",
+                 str(BIN / "gopre-run"), *common, "executor.address=auto", f"output_dir={tmp_path / 'job'}"],
+                capture_output=True, text=True, timeout=600, env={**os.environ, **TOKEN_ENV})
+            if "No available agent to submit job" not in submitted.stderr:
+                break
+            time.sleep(3)
         assert submitted.returncode == 0, submitted.stdout[-3000:] + submitted.stderr[-3000:]
         assert "succeeded" in submitted.stdout + submitted.stderr
         assert json.loads((tmp_path / "job" / "summary.json").read_text())["finished"] == 1
