@@ -122,3 +122,15 @@ def test_a_job_is_the_plain_form_the_hash_and_jobs_json_were_made_of():
         Job.from_dict({**plain, "threads": 2})
     with pytest.raises(ValueError, match="missing keys.*'splat'"):
         Job.from_dict({k: v for k, v in plain.items() if k != "splat"})
+
+
+def test_the_rounds_a_preempted_task_never_said_are_said_from_its_result():
+    """A SLURM task preempted between a round's checkpoint and its progress line resumes past that
+    round: the driver says the round from the finished job's result, once, in order."""
+    from pipeline.experiment.executors.slurm import unheard_rounds
+    outcome = JobOutcome(FINISHED, 1, [], an_episode().to_dict())
+    missing = unheard_rounds(outcome, heard={0, 2})
+    assert [m.record.round for m in missing] == [1]
+    assert missing[0].rounds == 3 and missing[0].record.test_psnr == 18.5 and missing[0].record.scores == {}
+    assert unheard_rounds(outcome, heard={0, 1, 2}) == []
+    assert unheard_rounds(JobOutcome.failed(1, ["Traceback"]), heard=set()) == []

@@ -53,6 +53,16 @@ def message_of(line: str) -> RoundMessage | StepProgress:
     return message_from_dict(data)
 
 
+def unheard_rounds(outcome: JobOutcome, heard: set[int]) -> list[RoundMessage]:
+    """The rounds of a finished job that never reached the driver as a progress line: a task
+    preempted after a round's checkpoint and before its line resumes past that round, so the round
+    is said from the job's result instead (its images, if any, are not kept)."""
+    episode = outcome.episode
+    if episode is None:
+        return []
+    return [RoundMessage.of(r, len(episode.rounds)) for r in episode.rounds if r.round not in heard]
+
+
 class SlurmJobRunner(_checkpointable()):
     """One array task: run the job here; requeued as is (submitit's ``Checkpointable``: the job's
     own round checkpoints carry its state)."""
@@ -161,16 +171,28 @@ class SlurmExecutor:
             array = ex.map_array(runner, [j.to_dict() for j in jobs])  # one job array per sweep
         pending = {j.config_hash: (j, s) for j, s in zip(jobs, array)}
         self.submitted = {h: s for h, (_, s) in pending.items()}
+        heard: dict[str, set[int]] = {h: set() for h in pending}
+
+        def hear(job: Job) -> None:
+            for line in tails[job.config_hash].new_lines():
+                message = message_of(line)
+                if isinstance(message, RoundMessage):
+                    heard[job.config_hash].add(message.record.round)
+                on_round(job, message)
         try:
             while pending:
                 for config_hash, (job, submitted) in list(pending.items()):
                     if on_round is not None:
-                        for line in tails[config_hash].new_lines():
-                            on_round(job, message_of(line))
+                        hear(job)
                     if not submitted.done():
                         continue
                     del pending[config_hash]
-                    on_done(job, self._outcome(submitted))
+                    outcome = self._outcome(submitted)
+                    if on_round is not None:
+                        hear(job)  # lines written after the last look
+                        for message in unheard_rounds(outcome, heard[config_hash]):
+                            on_round(job, message)
+                    on_done(job, outcome)
                 if pending:
                     time.sleep(POLL_SECONDS)
         except SweepInterrupted:
