@@ -185,7 +185,11 @@ def test_the_cluster_extra_joins_through_ray_client_and_the_jobs_api(tmp_path, c
     head.proc = subprocess.Popen(
         [str(ray_bin()), "start", "--head", f"--port={port}", "--num-cpus=2", f"--temp-dir={temp}",
          "--disable-usage-stats", "--include-dashboard=true", "--dashboard-host=127.0.0.1",
-         f"--dashboard-port={dashboard_port}", f"--ray-client-server-port={client_port}", "--block"],
+         f"--dashboard-port={dashboard_port}", f"--ray-client-server-port={client_port}",
+         # the agent's default ports are fixed: another Ray on this machine (a sweep running beside
+         # the tests) holds them, and the head's job agent would never come up
+         f"--dashboard-agent-listen-port={free_port()}", f"--dashboard-agent-grpc-port={free_port()}",
+         f"--runtime-env-agent-port={free_port()}", f"--metrics-export-port={free_port()}", "--block"],
         stdout=open(head.log, "w"), stderr=subprocess.STDOUT, start_new_session=True,
         env={**os.environ, **TOKEN_ENV})
     try:
@@ -203,7 +207,7 @@ def test_the_cluster_extra_joins_through_ray_client_and_the_jobs_api(tmp_path, c
             time.sleep(5)
         assert through_client.returncode == 0, output[-3000:]
         assert json.loads((tmp_path / "client" / "summary.json").read_text())["finished"] == 1
-        for _ in range(36):  # the head's job agent comes up after its dashboard (minutes on a loaded machine)
+        for _ in range(20):  # the head's job agent comes up after its dashboard (slower on a loaded machine)
             submitted = subprocess.run(
                 [str(ray_bin()), "job", "submit", "--address", f"http://127.0.0.1:{dashboard_port}", "--",
                  str(BIN / "gopre-run"), *common, "executor.address=auto", f"output_dir={tmp_path / 'job'}"],
