@@ -22,8 +22,9 @@ KINDS = (INT, FLOAT, BOOL, STR)
 class Bound:
     """What a value may be: ``kind`` (one of KINDS), inclusive/exclusive limits, a closed set of
     ``choices``, ``nullable`` (null allowed), ``pattern`` (a string's regular expression, with
-    ``pattern_hint`` saying it in words), and ``usual_max``: above it the value is allowed but a
-    plan warns that it is far beyond anything measured."""
+    ``pattern_hint`` saying it in words), ``also``: literal strings accepted besides (e.g. "all"),
+    and ``usual_max``: above it the value is allowed but a plan warns that it is far beyond
+    anything measured."""
 
     kind: str
     ge: float | None = None
@@ -34,6 +35,7 @@ class Bound:
     nullable: bool = False
     pattern: str | None = None
     pattern_hint: str | None = None
+    also: tuple[str, ...] = ()
     usual_max: float | None = None
 
     def __post_init__(self) -> None:
@@ -56,12 +58,14 @@ class Bound:
                 text += f" <{'=' if self.le is not None else ''} {_num(self.le if self.le is not None else self.lt)}"
             if self.pattern_hint:
                 text += f" ({self.pattern_hint})"
-        return text + (", or null" if self.nullable else "")
+        return text + (", or null" if self.nullable else "") + "".join(f' or "{a}"' for a in self.also)
 
     def problem(self, value) -> str | None:
         """None when ``value`` is allowed, else what is wrong with it."""
         if value is None:
             return None if self.nullable else "may not be null"
+        if isinstance(value, str) and value in self.also:
+            return None
         if self.choices is not None:
             return None if any(value == c and type(value) is type(c) for c in self.choices) else "not allowed"
         if not _is_kind(value, self.kind):
@@ -153,7 +157,7 @@ def declared(cls, where: str = "") -> list[tuple[str, Bound, object]]:
     return out
 
 
-def _present(cls, data: dict, where: str):
+def present(cls, data: dict, where: str = ""):
     """(dotted key, bound, value) of each value of ``data`` (a plain mapping, maybe partial) that
     ``cls`` declares, nested groups walked; keys ``cls`` does not declare are skipped (unknown
     keys have their own check)."""
@@ -164,24 +168,33 @@ def _present(cls, data: dict, where: str):
             continue
         default = _default(f)
         if is_dataclass(default) and isinstance(value, dict):
-            yield from _present(type(default), value, f"{where}{key}.")
+            yield from present(type(default), value, f"{where}{key}.")
         elif bound_of(f) is not None:
             yield f"{where}{key}", bound_of(f), value
 
 
-def violations(cls, data: dict, where: str = "") -> list[str]:
-    """One line per value of ``data`` that breaks its declared bound in ``cls``:
-    '<where><key>: <value> is not <what is allowed>'."""
-    return [f"{key}: {value!r} is not {bound.describe()}" for key, bound, value in _present(cls, data, where)
+def problem_lines(items) -> list[str]:
+    """'<key>: <value> is not <what is allowed>' for each (key, bound, value) the bound refuses."""
+    return [f"{key}: {value!r} is not {bound.describe()}" for key, bound, value in items
             if bound.problem(value) is not None]
 
 
-def warnings(cls, data: dict, where: str = "") -> list[str]:
-    """Allowed values above their declared ``usual_max``: one line each (for a plan)."""
+def warning_lines(items) -> list[str]:
+    """A line for each (key, bound, value) allowed but above the bound's ``usual_max``."""
     return [f"{key}={value!r} is far above anything measured (usually <= {_num(bound.usual_max)})"
-            for key, bound, value in _present(cls, data, where)
-            if bound.usual_max is not None and value is not None and bound.problem(value) is None
+            for key, bound, value in items
+            if bound.usual_max is not None and bound.problem(value) is None and _is_kind(value, FLOAT)
             and value > bound.usual_max]
+
+
+def violations(cls, data: dict, where: str = "") -> list[str]:
+    """One line per value of ``data`` that breaks its declared bound in ``cls``."""
+    return problem_lines(present(cls, data, where))
+
+
+def warnings(cls, data: dict, where: str = "") -> list[str]:
+    """Allowed values of ``data`` above their declared ``usual_max``: one line each (for a plan)."""
+    return warning_lines(present(cls, data, where))
 
 
 def _plain(obj) -> dict:

@@ -4,6 +4,7 @@ conf/, with their own defaults, and with the documentation generated from them."
 
 import copy
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -261,3 +262,26 @@ def test_cuda_jobs_on_a_machine_without_cuda_are_refused_before_any_job():
     with pytest.raises(ConfigError, match="job.device: 'cuda', but the jobs run on this machine and it has no CUDA"):
         no_device_here(here, [job])
     no_device_here(elsewhere, [job])  # a cluster's nodes may have GPUs: their workers say so
+
+
+@pytest.mark.parametrize("axis,line", [
+    ("+sweep.splat.iterations=[0,100]", "splat.iterations: 0 is not an integer >= 1"),
+    ("+sweep.splat.max_gaussians=[0]", "splat.max_gaussians: 0 is not an integer >= 1"),
+    ("+sweep.splat.curve_test_views=[0]", "splat.curve_test_views: 0 is not an integer >= 1"),
+])
+def test_a_sweep_axis_value_meets_the_same_declared_bounds(axis, line):
+    """An axis's values reach each job's splat section after the composed config is checked: 0
+    iterations used to mean "the preset's" silently."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", ["experiment=debug", "executor=local", "tracking=none", axis])
+    with pytest.raises(ConfigError, match=re.escape(line)):
+        expand_jobs(cfg)
+
+
+def test_more_picks_per_round_than_a_resolved_budget_leaves_is_refused_before_any_job(tmp_path):
+    """Without an explicit budget the picks are known once the scene's protocol is built."""
+    generate(tmp_path / "scenes" / "generated-32px-14-8-seed0" / "generated", seed=0, size=32, n_train=14, n_test=8)
+    proc = run_plan(tmp_path, "protocol.budget=null", "splat.views_per_round=50")
+    assert proc.returncode == 2
+    assert ("splat.views_per_round: 50 is more than the 8 picks the protocol leaves on dataset.generated scene "
+            "'generated' (budget 10, 2 initial views)") in proc.stderr

@@ -25,7 +25,7 @@ from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.bounds import BoundsError, under
 from pipeline.experiment.layout import SweepFolder
-from pipeline.experiment.schema import JOB_KINDS, config_problems
+from pipeline.experiment.schema import JOB_KINDS, config_problems, splat_problems
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
 from pipeline.experiment.splat_section import job_form
@@ -142,6 +142,9 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
     """Every job of the sweep, validated, in a deterministic order."""
     datasets, methods = _container(cfg, "dataset"), _container(cfg, "method")
     protocol, splat, job_cfg = _container(cfg, "protocol"), _container(cfg, "splat"), _container(cfg, "job")
+    # a preset's settings for a dataset that the list does not select (e.g. experiment=debug
+    # dataset=shared: debug sizes the generated scene) hold none of these keys: not a dataset here
+    datasets = {d: v for d, v in (datasets or {}).items() if set(v or {}) & DATASET_KEYS}
     if not datasets:
         raise ConfigError("dataset: no dataset selected")
     if not methods:
@@ -156,16 +159,10 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
     jobs = []
     output_dir = Path(str(cfg.output_dir)).absolute()  # job folders: the same wherever the job runs
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
-    # a preset's settings for a dataset that the list does not select (e.g. experiment=debug
-    # dataset=shared: debug sizes the generated scene) hold none of these keys: not a dataset here
-    datasets = {d: v for d, v in datasets.items() if set(v or {}) & DATASET_KEYS}
-    if not datasets:
-        raise ConfigError("dataset: no dataset selected")
     for dname, dset in datasets.items():
-        missing = sorted(DATASET_KEYS - set(dset or {}))
+        missing = sorted(DATASET_KEYS - set(dset))
         if missing:
-            raise ConfigError(f"dataset.{dname}: missing keys {missing} (a preset may configure a dataset "
-                              f"that the dataset list does not select; selected: {sorted(datasets)})")
+            raise ConfigError(f"dataset.{dname}: missing keys {missing} (selected: {sorted(datasets)})")
     for (dname, dset), (mname, method), seed, axes in itertools.product(
             datasets.items(), methods.items(), seeds_of(cfg), _axes(cfg)):
         check_keys(f"method.{mname}", method, METHOD_KEYS)
@@ -233,6 +230,9 @@ def episode_config(job: Job) -> EpisodeConfig:
     """The core's plain dataclass for a job (the core never sees a DictConfig)."""
     splat = dict(job.splat)
     check_keys("splat", splat, SPLAT_KEYS)
+    problems = splat_problems(splat)  # a sweep axis's values too (0 is not "unset": 0 iterations would
+    if problems:                      # silently mean the preset's)
+        raise ConfigError("; ".join(problems))
     try:
         base = episode_preset(splat["preset"])
         fit = base.fit

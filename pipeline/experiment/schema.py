@@ -13,12 +13,13 @@ config against all of them and returns one line per bad value, before any job is
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Iterator
 
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.uncertainty import UncertaintyConfig
-from pipeline.bounds import BOOL, FLOAT, INT, STR, Bound, bound_of, bounded, declared, violations, warnings
+from pipeline.bounds import (BOOL, FLOAT, INT, STR, Bound, bound_of, bounded, declared, present, problem_lines,
+                             violations, warning_lines, warnings)
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.data.synthetic import GeneratedScene
 from pipeline.fit.config import DensifyConfig, FitConfig
@@ -111,17 +112,22 @@ def field_bound(cls, name: str) -> Bound:
     return bound_of(next(f for f in fields(cls) if f.name == name))
 
 
+def splat_bound(key: str) -> Bound:
+    """The bound of ``splat.<key>``: its typed field's, null allowed (the preset's value), and
+    "all" for ``curve_test_views`` (every test view)."""
+    cls, name = SPLAT_FIELDS[key]
+    return replace(field_bound(cls, name), nullable=True, also=("all",) if key == "curve_test_views" else ())
+
+
+def splat_items(splat: dict):
+    """(dotted key, bound, value) of every declared value of a splat section, its fit overrides too."""
+    yield from ((f"splat.{key}", splat_bound(key), splat[key]) for key in SPLAT_FIELDS if key in splat)
+    yield from present(FitConfig, splat.get("fit") or {}, "splat.fit.")
+
+
 def splat_problems(splat: dict) -> list[str]:
-    out = []
-    for key, (cls, name) in SPLAT_FIELDS.items():
-        value = splat.get(key)
-        if value is None or (key == "curve_test_views" and value == "all"):
-            continue
-        problem = field_bound(cls, name).problem(value)
-        if problem is not None:
-            out.append(f"splat.{key}: {value!r} is not {field_bound(cls, name).describe()}"
-                       + (' or "all"' if key == "curve_test_views" else ""))
-    return out + violations(FitConfig, splat.get("fit") or {}, "splat.fit.")
+    """One line per bad value of a splat section (the composed config's, or a job's with its axes)."""
+    return problem_lines(splat_items(splat))
 
 
 def sections(cfg: dict) -> Iterator[tuple[str, type, dict]]:
@@ -166,13 +172,7 @@ def config_warnings(cfg: dict) -> list[str]:
     out = []
     for prefix, cls, data in sections(cfg):
         out += warnings(cls, data, prefix)
-    splat = cfg.get("splat") or {}
-    for key, (cls, name) in SPLAT_FIELDS.items():
-        usual = field_bound(cls, name).usual_max
-        value = splat.get(key)
-        if usual is not None and isinstance(value, (int, float)) and not isinstance(value, bool) and value > usual:
-            out.append(f"splat.{key}={value!r} is far above anything measured (usually <= {usual:g})")
-    return out + warnings(FitConfig, splat.get("fit") or {}, "splat.fit.")
+    return out + warning_lines(splat_items(cfg.get("splat") or {}))
 
 
 def schema_rows() -> list[tuple[str, str, object]]:
@@ -186,9 +186,7 @@ def schema_rows() -> list[tuple[str, str, object]]:
                         *[(f"method.<{name}>.options.", c) for name, c in REGISTRY.items()]]:
         rows += [(prefix + key, bound.describe(), default) for key, bound, default in declared(cls)
                  if not (cls is FitConfig and key in FIT_SET_ELSEWHERE)]
-    for key, (cls, name) in SPLAT_FIELDS.items():
-        rows.append((f"splat.{key}", field_bound(cls, name).describe() + ", or null (the preset's)"
-                     + (' or "all"' if key == "curve_test_views" else ""), None))
+    rows += [(f"splat.{key}", splat_bound(key).describe() + " (null: the preset's)", None) for key in SPLAT_FIELDS]
     return rows
 
 

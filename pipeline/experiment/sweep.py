@@ -175,34 +175,30 @@ def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = Tr
     empty sector ...), found by building the protocol's views before any job starts; with
     ``decode``, one per image those views use that cannot be decoded (a zero-byte file would
     otherwise fail the job that happens to pick it, mid-sweep)."""
-    errors, checked, built = [], set(), {}
+    errors, built, too_many = [], {}, set()
     used: dict[tuple[str, str], set[int]] = {}
     for job in jobs:
         if job.kind != "episode" or scene_key(job) not in scenes:
             continue
         key = (scene_key(job), json.dumps(job.protocol, sort_keys=True))
-        if key not in built:
+        if key not in built:  # each (scene, protocol) built once
             try:
-                built[key] = build_protocol(scenes[scene_key(job)], job.episode.protocol)
+                views = build_protocol(scenes[scene_key(job)], job.episode.protocol)
             except ValueError as err:
                 where = f" ({job.setting})" if job.setting else ""
                 errors.append(f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}")
-                built[key] = None
+                views = None
+            else:
+                used.setdefault((scene_key(job), views.pool_split), set()).update(
+                    views.initial_ids + views.pool_ids + views.probe_ids)
+                used.setdefault((scene_key(job), views.test_split), set()).update(views.test_ids)
+            built[key] = views
         views = built[key]
-        if views is None:
-            continue
-        picks = views.budget - len(views.initial_ids)
-        if job.episode.views_per_round > picks and (job.dataset, job.scene, picks) not in checked:
-            checked.add((job.dataset, job.scene, picks))
-            errors.append(f"splat.views_per_round: {job.episode.views_per_round} is more than the {picks} picks "
-                          f"the protocol leaves on dataset.{job.dataset} scene {job.scene!r} (budget "
-                          f"{views.budget}, {len(views.initial_ids)} initial views)")
-        if key in checked:
-            continue
-        checked.add(key)
-        used.setdefault((scene_key(job), views.pool_split), set()).update(
-            views.initial_ids + views.pool_ids + views.probe_ids)
-        used.setdefault((scene_key(job), views.test_split), set()).update(views.test_ids)
+        if views is not None and job.episode.views_per_round > views.budget - len(views.initial_ids):
+            too_many.add((job.dataset, job.scene, job.episode.views_per_round, views.budget, len(views.initial_ids)))
+    errors += [f"splat.views_per_round: {per_round} is more than the {budget - initial} picks the protocol leaves "
+               f"on dataset.{dataset} scene {scene!r} (budget {budget}, {initial} initial views)"
+               for dataset, scene, per_round, budget, initial in sorted(too_many)]
     if decode:
         for (key, split), ids in used.items():
             errors += scenes[key].split(split).images.check_decodable(sorted(ids))
