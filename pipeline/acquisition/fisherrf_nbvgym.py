@@ -23,13 +23,12 @@ Hessian mass) is the variant's; its absolute values are not NBV-Gym's.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-from pipeline.acquisition.base import Selection, SelectionContext, timed_selection
+from pipeline.acquisition.base import Selection, SelectionContext, in_chunks, timed_selection
 from pipeline.acquisition.rendered_stats import render_feature
 from pipeline.cameras import Cameras
 from pipeline.fisher.exact import FisherSpec
@@ -66,11 +65,8 @@ class FisherRFNbvGymStrategy:
 
     def gaussian_hessian(self, ctx: SelectionContext) -> Tensor:
         """H_g: the taken views' Hessians summed over views and parameters, [N] float64."""
-        start = time.perf_counter()
-        summed = ctx.backend.training_hessian(ctx.taken, self.spec).sum(-1)
-        ctx.fisher_seconds += time.perf_counter() - start
-        ctx.fisher_views += len(ctx.taken)
-        return summed
+        chunks = in_chunks(ctx, ctx.taken, lambda cams: ctx.backend.training_hessian(cams, self.spec).sum(-1))
+        return sum(chunks, torch.zeros(len(ctx.gaussians), dtype=torch.float64))
 
     def scores(self, ctx: SelectionContext, cameras: Cameras, hessian: Tensor) -> Tensor:
         """Each camera's mean of its depth-weighted Hessian map, [B] float64 (the higher wins)."""
