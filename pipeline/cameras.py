@@ -77,6 +77,13 @@ class Cameras:
                        first.width, first.height)
 
 
+def pixel_centers(width: int, height: int, dtype=torch.float32, device=None) -> tuple[Tensor, Tensor]:
+    """(u, v) of every pixel centre, [H*W] each, row-major: (j + 0.5, i + 0.5) (the convention above)."""
+    v, u = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device),
+                          indexing="ij")
+    return (u.reshape(-1) + 0.5).to(dtype), (v.reshape(-1) + 0.5).to(dtype)
+
+
 def look_at(eyes: Tensor, targets: Tensor, up: Tensor) -> Tensor:
     """World->camera matrices for cameras at ``eyes`` [C, 3] looking at ``targets`` [C, 3].
 

@@ -29,16 +29,15 @@ import torch
 from torch import Tensor
 
 from pipeline.acquisition.base import PoseScorer, Selection, SelectionContext, timed_selection
-from pipeline.cameras import Cameras
+from pipeline.cameras import Cameras, pixel_centers
 
 MIN_SOURCE_DEPTH = 1e-9  # |z| below this in the source camera is held at this size (no inf)
 
 
 def pixel_centres(width: int, height: int) -> Tensor:
     """Homogeneous pixel centres [3, H*W] float64, row-major: (j + 0.5, i + 0.5, 1)."""
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64) + 0.5,
-                          torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij")
-    return torch.stack([u.flatten(), v.flatten(), torch.ones(height * width, dtype=torch.float64)])
+    u, v = pixel_centers(width, height, torch.float64)
+    return torch.stack([u, v, torch.ones_like(u)])
 
 
 def source_pixels(sources: Cameras, target: Cameras, target_depth: Tensor) -> Tensor:

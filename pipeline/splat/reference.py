@@ -16,11 +16,7 @@ import torch
 import torch.utils.checkpoint
 from torch import Tensor
 
-
-def _pixel_centers(width: int, height: int, dtype, device) -> tuple[Tensor, Tensor]:
-    v, u = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device),
-                          indexing="ij")
-    return (u.reshape(-1) + 0.5).to(dtype), (v.reshape(-1) + 0.5).to(dtype)  # [H*W] each
+from pipeline.cameras import pixel_centers
 
 
 def _support(means2d: Tensor, radii: Tensor, u: Tensor, v: Tensor, tile_size: int) -> Tensor:
@@ -52,7 +48,7 @@ def rasterize_dense(means2d: Tensor, conics: Tensor, opacities: Tensor, features
     order = torch.argsort(depths.detach(), stable=True)
     means2d, conics, opacities, features, radii = (x[order] for x in
                                                    (means2d, conics, opacities, features, radii))
-    u, v = _pixel_centers(width, height, means2d.dtype, means2d.device)
+    u, v = pixel_centers(width, height, means2d.dtype, means2d.device)
 
     def block(u_b: Tensor, v_b: Tensor, means2d, conics, opacities, features):
         power = _power(means2d, conics, u_b, v_b)
@@ -82,7 +78,7 @@ def rasterize_loop(means2d: Tensor, conics: Tensor, opacities: Tensor, features:
                    radii: Tensor, depths: Tensor, width: int, height: int,
                    tile_size: int = 8) -> tuple[Tensor, Tensor]:
     """The 3DGS per-pixel loop, vectorised over pixels only. Tiny scenes only."""
-    u, v = _pixel_centers(width, height, means2d.dtype, means2d.device)
+    u, v = pixel_centers(width, height, means2d.dtype, means2d.device)
     support = _support(means2d, radii, u, v, tile_size)
     power = _power(means2d, conics, u, v)
     trans = torch.ones_like(u)
