@@ -9,10 +9,14 @@
     gopre-report outputs/science outputs/table1_global --paper table1_global --out reports/t1
                                                          # several sweeps as one table
     gopre-report --mlflow-uri http://host:5000 --experiment table1_global --out reports/table1
+    gopre-report outputs/table2_goal outputs/table2_noreset --by-sweep  # the same episodes under two
+                                                         # policies: each sweep a setting, paired against the first
+    gopre-report outputs/table5_probes --baseline-setting K=1   # every setting against K=1, method by method
     gopre-report outputs/table2_goal --results elsewhere/                # result.json files from anywhere
     gopre-report --results 'runs/**/result.json' --benchmark reports/benchmarks/table2_goal.json
 
-Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png and runs.csv.
+Prints the Markdown tables; writes report.md, table.md, table.tex, figures/*.png, falls.csv (each
+episode's worst round-to-round fall of the curve) and runs.csv.
 """
 
 from __future__ import annotations
@@ -43,6 +47,14 @@ def with_results(frame, patterns: list[str], benchmarks: list[str], sweeps: list
     return in_config_order(pd.concat([frame, with_metrics_version(extra)], ignore_index=True))
 
 
+def baseline_setting(frame, args) -> str | None:
+    """--baseline-setting, else with --by-sweep the first sweep's first setting (config order)."""
+    if args.baseline_setting is not None or not args.by_sweep:
+        return args.baseline_setting
+    final = frame[frame["kind"] == "final"]
+    return str(final["setting"].iloc[0]) if not final.empty else None
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=command_name("report"), description=__doc__,
                                      epilog=alias_note("report"),
@@ -57,6 +69,12 @@ def main(argv=None) -> int:
                         help="only these seeds, e.g. 0,1,2 (a sweep stopped inside a later seed)")
     parser.add_argument("--reference", default=None,
                         help="method the paired comparisons are against (default: gopre when it ran)")
+    parser.add_argument("--by-sweep", action="store_true",
+                        help="several sweeps of the same episodes (e.g. one with an override): each sweep is a "
+                             "setting named after it, and every method's settings are paired against the first "
+                             "sweep's (or --baseline-setting)")
+    parser.add_argument("--baseline-setting", default=None, metavar="SETTING",
+                        help="pair each method's other settings against this one (final PSNR, curve area)")
     parser.add_argument("--paper", nargs="?", const="auto", default=None, metavar="TABLE",
                         help="also print the sweep beside the paper's table (paper.md): the table the "
                              "sweep's name maps to, or TABLE (table1_global ... table6_pool)")
@@ -81,7 +99,9 @@ def main(argv=None) -> int:
         elif not args.source and not args.results:
             parser.error("give a sweep folder, --results, or --mlflow-uri and --experiment")
         elif args.source:
-            frame, source = combine_records(args.source), args.source[0]
+            if args.by_sweep and len(args.source) < 2:
+                parser.error("--by-sweep compares sweeps: give two or more sweep folders")
+            frame, source = combine_records(args.source, by_sweep=args.by_sweep), args.source[0]
         else:
             frame, source = None, Path(".")
         if args.benchmark and not args.results:
@@ -105,7 +125,7 @@ def main(argv=None) -> int:
                        "failed": 0, "figures": {}}
             Path(out).mkdir(parents=True, exist_ok=True)
         else:
-            summary = make_report(source, out, frame, args.reference)
+            summary = make_report(source, out, frame, args.reference, baseline_setting(frame, args))
         if args.paper is not None:
             from pipeline.report.paper import paper_report
             beside = paper_report(frame, None if args.paper == "auto" else args.paper)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.report import figures, search
+from pipeline.report import falls, figures, search
 from pipeline.report.rows import finished
 from pipeline.report.stats import default_reference, paired_comparisons, with_curve_area
 from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
@@ -73,15 +73,24 @@ def missing_ssim_note(final: pd.DataFrame) -> str | None:
 EPISODE_KEY = ["scene", "method", "protocol", "setting", "seed"]
 
 
-def combine_records(sources: list[str | Path]) -> pd.DataFrame:
+def combine_records(sources: list[str | Path], by_sweep: bool = False) -> pd.DataFrame:
     """The records of several sweeps as one frame (e.g. a study's rows and a preset's missing
     rows, reported as one table), in each sweep's config order, one sweep after the other.
 
     The same episode (scene, method, protocol, setting, seed) finished in two of them is an error
-    naming both sweeps: which one to report is the user's choice (``--seeds`` or fewer sources)."""
-    frames, offset = [], 0
+    naming both sweeps: which one to report is the user's choice (``--seeds`` or fewer sources).
+    ``by_sweep``: each sweep is a setting of its own (its name, before the row's own setting), so
+    the same episodes under two policies are compared instead (see ``sweep_settings``)."""
+    frames, offset, named = [], 0, {}
     for source in sources:
         frame = load_records(source).copy()
+        if by_sweep:
+            for name in dict.fromkeys(frame["sweep"]):
+                if name in named:
+                    raise ValueError(f"{source} and {named[name]} are both sweep {name!r}: compared by "
+                                     f"sweep, each needs its own name (run one with name=...)")
+                named[name] = source
+            frame["setting"] = sweep_settings(frame)
         if "job_index" in frame:
             frame["job_index"] = frame["job_index"] + offset
             offset = int(frame["job_index"].max()) + 1
@@ -101,6 +110,13 @@ def combine_records(sources: list[str | Path]) -> pd.DataFrame:
     return in_config_order(combined)
 
 
+def sweep_settings(frame: pd.DataFrame) -> pd.Series:
+    """Each row's setting prefixed by its sweep's name: 'name' or 'name, setting'."""
+    own = frame["setting"].fillna("") if "setting" in frame else pd.Series("", index=frame.index)
+    return pd.Series([f"{sweep}, {s}" if s else str(sweep) for sweep, s in zip(frame["sweep"], own)],
+                     index=frame.index)
+
+
 def in_config_order(frame: pd.DataFrame) -> pd.DataFrame:
     """Rows in the order the sweep config lists jobs (not the order they finished in)."""
     if "job_index" not in frame:
@@ -118,9 +134,11 @@ def degraded_jobs(final: pd.DataFrame) -> list[str]:
             f"{r['curve_psnr_drop']:.2f} dB below its last round" for _, r in bad.iterrows()]
 
 
-def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None) -> list:
+def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None,
+                   baseline_setting: str | None = None) -> list:
     """The main table; with sweep axes and several methods, a methods x datasets table per
-    setting; and the paired comparison against ``reference`` (default: gopre when it ran)."""
+    setting; the paired comparison against ``reference`` (default: gopre when it ran); with
+    ``baseline_setting``, each method's other settings against that one (``setting_tables``)."""
     final = finished(frame, "final", "episode")
     if final.empty:
         return []
@@ -152,7 +170,32 @@ def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None
         table.notes.append(f"{len(bad)} job(s) in these cells ended on a degraded model (final PSNR "
                            f"more than 3 dB below the last round's on the same views): "
                            + "; ".join(bad))
-    return tables + paired_tables(final, title, methods, settings, reference)
+    tables += paired_tables(final, title, methods, settings, reference)
+    if baseline_setting is not None:
+        tables += setting_tables(final, title, methods, settings, baseline_setting)
+    return tables
+
+
+def setting_tables(final: pd.DataFrame, title: str, methods: list[str], settings: list[str],
+                   baseline: str) -> list[PairedTable]:
+    """One table: for every method, each other setting against ``baseline`` on final PSNR and the
+    curve area, paired over (dataset, scene, seed): what a policy or option changes, method by
+    method (rows 'method: setting')."""
+    if baseline not in settings:
+        raise ValueError(f"baseline setting {baseline!r} did not run; settings: {settings}")
+    rows: dict[str, dict] = {}
+    for method in methods:
+        part = final[final["method"] == method]
+        as_methods = part.assign(method=part["setting"], setting="")
+        if baseline not in set(as_methods["method"]):
+            continue
+        for metric in ("psnr", "psnr_auc"):
+            for c in paired_comparisons(as_methods, baseline, metric, settings):
+                rows.setdefault(f"{method}: {c.method}", {})[metric] = c
+    if not rows:
+        return []
+    return [PairedTable(f"{title}: each setting against {baseline}, method by method", baseline,
+                        ["psnr", "psnr_auc"], rows)]
 
 
 def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) -> list[Table]:
@@ -283,6 +326,16 @@ def search_section(frame: pd.DataFrame, sweep_dir: Path | None, out: Path, made:
     return lines
 
 
+def falls_section(frame: pd.DataFrame, out: Path) -> list[str]:
+    """The curve's round-to-round falls per method (``falls.markdown``), every episode's in
+    ``falls.csv``; nothing when no episode has rounds."""
+    rows = falls.episode_falls(frame)
+    if rows.empty:
+        return []
+    rows.to_csv(out / "falls.csv", index=False)
+    return ["## Round-to-round falls of the curve", "", falls.falls_markdown(rows)]
+
+
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
     final = frame[frame["kind"] == "final"]
     cols = [c for c in ("sweep", "method", "dataset", "scene", "seed", "setting", "config_hash", "run_id",
@@ -299,16 +352,17 @@ def frame_to_markdown(frame: pd.DataFrame) -> str:
 
 
 def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None,
-                reference: str | None = None) -> dict:
-    """Write report.md, tables (.md, .tex), figures/ and runs.csv into ``out``; returns a summary.
-    ``reference``: the method the paired comparisons are against (default gopre when present)."""
+                reference: str | None = None, baseline_setting: str | None = None) -> dict:
+    """Write report.md, tables (.md, .tex), figures/, falls.csv and runs.csv into ``out``; returns
+    a summary. ``reference``: the method the paired comparisons are against (default gopre when
+    present); ``baseline_setting``: the setting each method's others are paired against."""
     sweep_dir = Path(source) if Path(source).is_dir() else None
     frame = load_records(source) if frame is None else in_config_order(frame)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     title = str(frame["sweep"].iloc[0])
     methods = list(dict.fromkeys(finished(frame, "final")["method"]))
-    tables = (episode_tables(frame, title, reference) + ause_table(frame, title)
+    tables = (episode_tables(frame, title, reference, baseline_setting) + ause_table(frame, title)
               + search.twin_tables(frame, title, skip=default_reference(methods, reference)))
     markdown = "".join(render_markdown(t) + "\n" for t in tables)
     (out / "table.md").write_text(markdown)
@@ -318,7 +372,8 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     runs.to_csv(out / "runs.csv", index=False)
     failed = runs[runs["status"] != "FINISHED"]
     seeds = sorted(set(runs["seed"]))
-    lines = [f"# Report: {title}", "", markdown, *search_section(frame, sweep_dir, out, made), "## Figures", ""]
+    lines = [f"# Report: {title}", "", markdown, *falls_section(frame, out),
+             *search_section(frame, sweep_dir, out, made), "## Figures", ""]
     if "psnr_vs_views.png" in made:
         lines += ["PSNR vs views averages the curve's test views (a fixed subset, "
                   "`splat.curve_test_views`); the tables' final PSNR uses every test view, so a curve's "
