@@ -354,3 +354,44 @@ def test_each_methods_selection_cpu_time_is_tabled_beside_its_quality(tmp_path):
     frame.drop(columns="selection_cpu_seconds").to_parquet(path)
     make_report(path, tmp_path / "plain")
     assert "selection CPU" not in (tmp_path / "plain" / "table.md").read_text()
+
+
+def test_each_scene_gets_its_own_paired_table_with_its_own_pairs(tmp_path):
+    """Five seeds on two scenes: the pooled table has 10 pairs, each scene's table its own 5 and
+    its own mean difference, so a scene's verdict is drawn from that scene alone."""
+    from pipeline.report.report import episode_tables, render_markdown
+    gaps = {"lego": [0.5, 0.6, 0.4, 0.7, 0.5], "bonsai": [-0.2, -0.1, -0.3, -0.2, -0.4]}
+    rows = []
+    for scene, per_seed in gaps.items():
+        for seed, gap in enumerate(per_seed):
+            rows.append(final_row("gopre", "d", scene, seed, 20.0 + seed + gap, 0.8))
+            rows.append(final_row("random", "d", scene, seed, 20.0 + seed, 0.8))
+    tables = {t.title: t for t in episode_tables(pd.DataFrame(rows), "t")
+              if "paired differences" in t.title}
+    assert list(tables) == ["t: paired differences against gopre",
+                            "t, lego only: paired differences against gopre",
+                            "t, bonsai only: paired differences against gopre"]
+    assert tables["t: paired differences against gopre"].rows["random"]["psnr"].n == 10
+    for scene, per_seed in gaps.items():
+        c = tables[f"t, {scene} only: paired differences against gopre"].rows["random"]["psnr"]
+        assert c.n == 5 and c.mean_difference == pytest.approx(-np.mean(per_seed))
+    text = render_markdown(tables["t, bonsai only: paired differences against gopre"])
+    assert "random better" in text  # random - gopre > 0 on every bonsai seed: the scene's own verdict
+
+
+def test_a_figure_regenerated_is_the_same_file(tmp_path):
+    """Published figures are tracked: regenerating a report must not rewrite its PDFs (a creation
+    date in them did, every time)."""
+    import time
+
+    import matplotlib.pyplot as plt
+
+    from pipeline.report.figures import save_figure
+    digests = []
+    for k in range(2):
+        fig, ax = plt.subplots()
+        ax.plot([0, 1], [1, 2])
+        save_figure(fig, tmp_path / f"f{k}.png")
+        digests.append((tmp_path / f"f{k}.pdf").read_bytes())
+        time.sleep(1.1)  # the PDF date has one-second resolution
+    assert digests[0] == digests[1]

@@ -17,9 +17,10 @@ from PIL import Image  # noqa: E402
 
 def save_figure(fig, path: Path) -> None:
     """The figure as ``path`` (PNG, for the Markdown report) and beside it as vector PDF (for a
-    paper), then closed."""
+    paper), then closed. The PDF carries no creation date, so the same figure regenerated is the
+    same file (a published report's figures change only when their content does)."""
     fig.savefig(path, dpi=120)
-    fig.savefig(Path(path).with_suffix(".pdf"))
+    fig.savefig(Path(path).with_suffix(".pdf"), metadata={"CreationDate": None})
     plt.close(fig)
 
 

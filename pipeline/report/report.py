@@ -217,27 +217,42 @@ def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) ->
 
 def paired_tables(final: pd.DataFrame, title: str, methods: list[str], settings: list[str],
                   reference: str | None) -> list[PairedTable]:
-    """Per setting, every method against ``reference`` on final PSNR and the curve area."""
+    """Per setting, every method against ``reference`` on final PSNR and the curve area, over all
+    scenes; with several scenes, then one table per scene (each scene's own verdicts: with five
+    seeds a scene has the five pairs the rule asks for)."""
     reference = default_reference(methods, reference)
     if reference is None or len(methods) < 2:
         return []
     if reference not in methods:
         raise ValueError(f"reference method {reference!r} did not run; methods: {methods}")
+    scenes = list(dict.fromkeys(final["scene"]))
     out = []
     for s in settings:
         part = final[final["setting"] == s]
-        if reference not in set(part["method"]):
-            continue
-        metrics = ["psnr", "psnr_auc"]
-        by_method: dict[str, dict] = {}
-        for metric in metrics:
-            for c in paired_comparisons(part, reference, metric, methods):
-                by_method.setdefault(c.method, {})[metric] = c
-        if by_method:
-            label = f", {s}" if s else ""
-            out.append(PairedTable(f"{title}{label}: paired differences against {reference}",
-                                   reference, metrics, by_method))
+        label = f", {s}" if s else ""
+        out += _paired_table(part, f"{title}{label}", methods, reference)
+        if len(scenes) > 1:
+            for scene in scenes:
+                out += _paired_table(part[part["scene"] == scene], f"{title}{label}, {scene} only",
+                                     methods, reference)
     return out
+
+
+def _paired_table(part: pd.DataFrame, title: str, methods: list[str], reference: str) -> list[PairedTable]:
+    """[every method against ``reference`` over ``part``'s pairs], or [] when it has none."""
+    if reference not in set(part["method"]):
+        return []
+    metrics = ["psnr", "psnr_auc"]
+    ours = part[part["method"] == reference]
+    by_method: dict[str, dict] = {}
+    for metric in metrics:
+        if metric not in ours or ours[metric].isna().all():  # e.g. a scene whose rounds were not recorded
+            continue
+        for c in paired_comparisons(part, reference, metric, methods):
+            by_method.setdefault(c.method, {})[metric] = c
+    if not by_method:
+        return []
+    return [PairedTable(f"{title}: paired differences against {reference}", reference, metrics, by_method)]
 
 
 def render_markdown(table) -> str:
