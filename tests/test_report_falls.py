@@ -126,3 +126,28 @@ def test_the_cli_compares_sweeps_against_the_first_and_refuses_one_sweep(tmp_pat
     with pytest.raises(SystemExit):
         main([str(tmp_path / "first"), "--by-sweep", "--out", str(tmp_path / "out2")])
     assert "give two or more sweep folders" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("with_sweep", [True, False])
+def test_the_same_job_in_two_sweeps_keeps_its_own_curve_in_each(tmp_path, with_sweep):
+    """The same config under two code versions has one config hash in both sweeps: compared by
+    sweep, each keeps its own curve (falls, final PSNR, curve area), not the two merged."""
+    old = round_rows("a", 0, [15.0, 13.0, 16.0], sweep="old")
+    new = round_rows("a", 0, [15.0, 15.5, 16.5], sweep="new")
+    for row in old + new:
+        row["config_hash"] = "same-job"
+    frame = pd.DataFrame(old + new).assign(setting=lambda f: f["sweep"])
+    if not with_sweep:  # one sweep's rows alone, without the sweep column, still read
+        frame = pd.DataFrame(old).drop(columns="sweep")
+    falls = episode_falls(frame).set_index("setting") if with_sweep else episode_falls(frame)
+    if with_sweep:
+        assert falls.loc["old", "worst_fall_db"] == pytest.approx(2.0)
+        assert falls.loc["new", "worst_fall_db"] == 0.0
+        assert falls.loc["new", "final_psnr"] == pytest.approx(17.0)
+        from pipeline.report.report import episode_tables
+        pooled = episode_tables(frame, "t")[0]  # one method: a row per setting
+        areas = {row: pooled.cells[(row, ("", "psnr_auc"))].mean for row in pooled.rows}
+        assert areas == {"old": pytest.approx(14.25), "new": pytest.approx(15.625)}  # trapezoids by hand
+    else:
+        assert falls["worst_fall_db"].tolist() == [pytest.approx(2.0)]
+        assert falls["final_psnr"].tolist() == [pytest.approx(16.5)]

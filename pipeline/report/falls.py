@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.report.rows import finished
+from pipeline.report.stats import job_keys
 
 FALL_DB = 1.0  # a fall above this is counted apart (issue 46: every method under 1 dB)
 EPISODE_COLUMNS = ("method", "setting", "dataset", "scene", "seed")
@@ -50,16 +51,17 @@ def episode_falls(frame: pd.DataFrame) -> pd.DataFrame:
     if rounds.empty:
         return pd.DataFrame(columns=[*EPISODE_COLUMNS, "worst_fall_db", "from_views", "to_views", "final_psnr"])
     rounds = rounds.assign(setting=rounds["setting"].fillna("") if "setting" in rounds else "")
-    final = finished(frame, "final").set_index("config_hash")["psnr"]
+    keys = job_keys(rounds)
+    final = finished(frame, "final").groupby(keys)["psnr"].first()
     order = [c for c in ("iteration", "num_views") if c in rounds]
     rows = []
-    for config_hash, curve in rounds.groupby("config_hash", sort=False):
+    for job, curve in rounds.groupby(keys, sort=False):
         curve = curve.sort_values(order, kind="stable")
         fall = worst_fall(curve["num_views"].to_numpy(), curve["psnr"].to_numpy())
         first = curve.iloc[0]
         rows.append({**{c: first[c] for c in EPISODE_COLUMNS}, "worst_fall_db": fall.fall_db,
                      "from_views": fall.from_views, "to_views": fall.to_views,
-                     "final_psnr": float(final.get(config_hash, np.nan))})
+                     "final_psnr": float(final.get(job if len(keys) > 1 else job[0], np.nan))})
     return pd.DataFrame(rows)
 
 

@@ -32,13 +32,21 @@ def curve_area(num_views: np.ndarray, psnr: np.ndarray) -> float:
     return float(np.sum((x[1:] - x[:-1]) * (y[1:] + y[:-1]) / 2) / (x[-1] - x[0]))
 
 
+def job_keys(frame: pd.DataFrame) -> list[str]:
+    """What names one job's rows: its config hash within its sweep (two sweeps compared side by
+    side may hold the same job, e.g. the same config under two code versions)."""
+    return [k for k in ("sweep", "config_hash") if k in frame]
+
+
 def with_curve_area(final: pd.DataFrame, rounds: pd.DataFrame) -> pd.DataFrame:
-    """``final`` with a ``psnr_auc`` column: each job's (config_hash) curve area from its rounds."""
+    """``final`` with a ``psnr_auc`` column: each job's curve area from its rounds."""
     if rounds.empty:
         return final.assign(psnr_auc=np.nan)
+    keys = job_keys(rounds)
     areas = {key: curve_area(part["num_views"].to_numpy(), part["psnr"].to_numpy())
-             for key, part in rounds.dropna(subset=["psnr"]).groupby("config_hash")}
-    return final.assign(psnr_auc=final["config_hash"].map(areas).astype(float))
+             for key, part in rounds.dropna(subset=["psnr"]).groupby(keys)}
+    index = pd.MultiIndex.from_frame(final[keys]) if len(keys) > 1 else final[keys[0]]
+    return final.assign(psnr_auc=[areas.get(k if isinstance(k, tuple) else (k,), np.nan) for k in index])
 
 
 def bootstrap_interval(values: np.ndarray, level: float = 0.95, samples: int = BOOTSTRAP_SAMPLES,
