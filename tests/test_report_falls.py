@@ -151,3 +151,14 @@ def test_the_same_job_in_two_sweeps_keeps_its_own_curve_in_each(tmp_path, with_s
     else:
         assert falls["worst_fall_db"].tolist() == [pytest.approx(2.0)]
         assert falls["final_psnr"].tolist() == [pytest.approx(16.5)]
+
+
+def test_a_baseline_without_curves_is_compared_on_final_psnr_alone():
+    """Final rows only (no rounds recorded, so no curve area): the settings are still paired on
+    final PSNR, not refused."""
+    from pipeline.report.report import setting_tables
+    rows = [{"method": "a", "setting": s, "dataset": "d", "scene": "x", "seed": seed, "psnr": 20.0 + seed + bump,
+             "psnr_auc": np.nan} for seed in range(3) for s, bump in (("base", 0.0), ("other", 0.5))]
+    (table,) = setting_tables(pd.DataFrame(rows), "t", ["a"], ["base", "other"], "base")
+    assert table.rows["a: other"]["psnr"].mean_difference == pytest.approx(0.5)
+    assert "psnr_auc" not in table.rows["a: other"]

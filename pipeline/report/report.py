@@ -187,9 +187,10 @@ def setting_tables(final: pd.DataFrame, title: str, methods: list[str], settings
     for method in methods:
         part = final[final["method"] == method]
         as_methods = part.assign(method=part["setting"], setting="")
-        if baseline not in set(as_methods["method"]):
-            continue
+        base = as_methods[as_methods["method"] == baseline]
         for metric in ("psnr", "psnr_auc"):
+            if metric not in base or base[metric].isna().all():  # the baseline ran no such value here
+                continue
             for c in paired_comparisons(as_methods, baseline, metric, settings):
                 rows.setdefault(f"{method}: {c.method}", {})[metric] = c
     if not rows:
