@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.report.rows import finished
-from pipeline.report.stats import job_keys
+from pipeline.report.stats import job_ids, job_keys
 
 FALL_DB = 1.0  # a fall above this is counted apart (issue 46: every method under 1 dB)
 EPISODE_COLUMNS = ("method", "setting", "dataset", "scene", "seed")
@@ -52,7 +52,8 @@ def episode_falls(frame: pd.DataFrame) -> pd.DataFrame:
         return pd.DataFrame(columns=[*EPISODE_COLUMNS, "worst_fall_db", "from_views", "to_views", "final_psnr"])
     rounds = rounds.assign(setting=rounds["setting"].fillna("") if "setting" in rounds else "")
     keys = job_keys(rounds)
-    final = finished(frame, "final").groupby(keys)["psnr"].first()
+    finals = finished(frame, "final")
+    final = dict(zip(job_ids(finals, keys), finals["psnr"]))
     order = [c for c in ("iteration", "num_views") if c in rounds]
     rows = []
     for job, curve in rounds.groupby(keys, sort=False):
@@ -61,7 +62,7 @@ def episode_falls(frame: pd.DataFrame) -> pd.DataFrame:
         first = curve.iloc[0]
         rows.append({**{c: first[c] for c in EPISODE_COLUMNS}, "worst_fall_db": fall.fall_db,
                      "from_views": fall.from_views, "to_views": fall.to_views,
-                     "final_psnr": float(final.get(job if len(keys) > 1 else job[0], np.nan))})
+                     "final_psnr": float(final.get(job, np.nan))})
     return pd.DataFrame(rows)
 
 

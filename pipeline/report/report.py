@@ -71,6 +71,7 @@ def missing_ssim_note(final: pd.DataFrame) -> str | None:
 
 
 EPISODE_KEY = ["scene", "method", "protocol", "setting", "seed"]
+PAIRED_METRICS = ["psnr", "psnr_auc"]  # what paired comparisons compare
 
 
 def combine_records(sources: list[str | Path], by_sweep: bool = False) -> pd.DataFrame:
@@ -186,17 +187,12 @@ def setting_tables(final: pd.DataFrame, title: str, methods: list[str], settings
     rows: dict[str, dict] = {}
     for method in methods:
         part = final[final["method"] == method]
-        as_methods = part.assign(method=part["setting"], setting="")
-        base = as_methods[as_methods["method"] == baseline]
-        for metric in ("psnr", "psnr_auc"):
-            if metric not in base or base[metric].isna().all():  # the baseline ran no such value here
-                continue
-            for c in paired_comparisons(as_methods, baseline, metric, settings):
-                rows.setdefault(f"{method}: {c.method}", {})[metric] = c
+        compared = comparisons(part.assign(method=part["setting"], setting=""), baseline, settings)
+        rows.update({f"{method}: {setting}": by_metric for setting, by_metric in compared.items()})
     if not rows:
         return []
     return [PairedTable(f"{title}: each setting against {baseline}, method by method", baseline,
-                        ["psnr", "psnr_auc"], rows)]
+                        PAIRED_METRICS, rows)]
 
 
 def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) -> list[Table]:
@@ -239,21 +235,26 @@ def paired_tables(final: pd.DataFrame, title: str, methods: list[str], settings:
     return out
 
 
-def _paired_table(part: pd.DataFrame, title: str, methods: list[str], reference: str) -> list[PairedTable]:
-    """[every method against ``reference`` over ``part``'s pairs], or [] when it has none."""
-    if reference not in set(part["method"]):
-        return []
-    metrics = ["psnr", "psnr_auc"]
+def comparisons(part: pd.DataFrame, reference: str, order: list[str]) -> dict[str, dict]:
+    """{method: {metric: PairedComparison}} of every method of ``part`` against ``reference`` on
+    ``PAIRED_METRICS``, in ``order``; a metric the reference has no value of in ``part`` (e.g. a
+    scene whose rounds were not recorded: no curve area) is left out, and {} when it did not run."""
     ours = part[part["method"] == reference]
     by_method: dict[str, dict] = {}
-    for metric in metrics:
-        if metric not in ours or ours[metric].isna().all():  # e.g. a scene whose rounds were not recorded
+    for metric in PAIRED_METRICS:
+        if metric not in ours or ours[metric].isna().all():
             continue
-        for c in paired_comparisons(part, reference, metric, methods):
+        for c in paired_comparisons(part, reference, metric, order):
             by_method.setdefault(c.method, {})[metric] = c
+    return by_method
+
+
+def _paired_table(part: pd.DataFrame, title: str, methods: list[str], reference: str) -> list[PairedTable]:
+    """[every method against ``reference`` over ``part``'s pairs], or [] when it has none."""
+    by_method = comparisons(part, reference, methods)
     if not by_method:
         return []
-    return [PairedTable(f"{title}: paired differences against {reference}", reference, metrics, by_method)]
+    return [PairedTable(f"{title}: paired differences against {reference}", reference, PAIRED_METRICS, by_method)]
 
 
 def render_markdown(table) -> str:

@@ -38,6 +38,12 @@ def job_keys(frame: pd.DataFrame) -> list[str]:
     return [k for k in ("sweep", "config_hash") if k in frame]
 
 
+def job_ids(frame: pd.DataFrame, keys: list[str]) -> list[tuple]:
+    """Each row's job as a tuple of its ``keys`` values: the form ``frame.groupby(keys)`` names a
+    group in, whatever the number of keys."""
+    return list(frame[keys].itertuples(index=False, name=None))
+
+
 def with_curve_area(final: pd.DataFrame, rounds: pd.DataFrame) -> pd.DataFrame:
     """``final`` with a ``psnr_auc`` column: each job's curve area from its rounds."""
     if rounds.empty:
@@ -45,8 +51,7 @@ def with_curve_area(final: pd.DataFrame, rounds: pd.DataFrame) -> pd.DataFrame:
     keys = job_keys(rounds)
     areas = {key: curve_area(part["num_views"].to_numpy(), part["psnr"].to_numpy())
              for key, part in rounds.dropna(subset=["psnr"]).groupby(keys)}
-    index = pd.MultiIndex.from_frame(final[keys]) if len(keys) > 1 else final[keys[0]]
-    return final.assign(psnr_auc=[areas.get(k if isinstance(k, tuple) else (k,), np.nan) for k in index])
+    return final.assign(psnr_auc=[areas.get(job, np.nan) for job in job_ids(final, keys)])
 
 
 def bootstrap_interval(values: np.ndarray, level: float = 0.95, samples: int = BOOTSTRAP_SAMPLES,
