@@ -58,3 +58,23 @@ def test_a_first_jobs_one_time_compilation_is_not_in_the_estimate():
     durations = _durations(records).set_index("method")["wall_seconds"]
     assert durations["gopre"] == 120.0  # the fresh machine's compile left out
     assert durations["random"] == 40.0  # a record from before the column: as it was
+
+
+def test_plan_prints_the_schedule_as_run_and_the_events_densify_settle_holds(tmp_path):
+    """tiny at 100 steps a view: rounds of 200 and 300 steps, then 400 (900 in all), so the 240-step
+    recipe runs x3.75 and an overridden value with it (densify.stop 100 -> 375); densification
+    from 180 every 120 steps: 240 and 360, the latter 140 before the evaluation at 500, which a
+    settle of 150 holds (by hand)."""
+    proc = run_plan(f"output_dir={tmp_path}", "splat.epochs_per_view=100", "splat.fit.densify.stop=100",
+                    "+splat.densify_settle=150")
+    assert proc.returncode == 0, proc.stderr
+    text = proc.stdout
+    assert "the rounds train 200, 300 steps, evaluating at step 200, 500; then 400 after the last pick" in text
+    assert "900 steps in all, so the recipe of 240 runs rescaled x3.75" in text
+    for line in ("fit.densify.stop = 100 -> 375", "fit.densify.start = 48 -> 180", "fit.densify.interval = 32 -> 120"):
+        assert f"    {line}\n" in text
+    assert "densify_settle=150 holds these density events: densify at 360 (140 before the evaluation at 500)\n" in text
+    plain = run_plan(f"output_dir={tmp_path}").stdout  # the debug preset as written: 240 steps
+    assert "240 steps in all: the recipe runs as written" in plain
+    assert ("before an evaluation (+splat.densify_settle=N holds those in the last N steps): "
+            "densify at 96 (4 before the evaluation at 100)\n") in plain

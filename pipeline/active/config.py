@@ -54,6 +54,10 @@ class EpisodeConfig:
     # opacities (a reset needs that many steps to recover before the round's evaluation); None:
     # reset after every pick (the paper)
     reset_recovery: int | None = bounded(None, INT, ge=1, nullable=True)
+    # no density event (densification, prune, periodic opacity reset) in the last this many steps
+    # before each evaluation (every round's and the final one), so what is measured has settled;
+    # None: the recipe's events wherever they fall (3DGS, the paper)
+    densify_settle: int | None = bounded(None, INT, ge=1, nullable=True)
 
     def __post_init__(self) -> None:
         require_bounds(self)  # each declared field; the relations between fields below
@@ -107,8 +111,9 @@ class EpisodeConfig:
             del out["init"]
         if not out["masks"]:  # a checkpoint of an unmasked episode matches as before
             del out["masks"]
-        if out["reset_recovery"] is None:  # so does one of the paper's reset rule
-            del out["reset_recovery"]
+        for optional in ("reset_recovery", "densify_settle"):  # so does one of the paper's rules
+            if out[optional] is None:
+                del out[optional]
         if self.world == "dataset":  # so are the world's fields (issue 28)
             for key in ("world", "world_model", "search"):
                 del out[key]

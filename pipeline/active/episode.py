@@ -29,10 +29,10 @@ from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
 from pipeline.cameras import Cameras
 from pipeline.splat.compiled import compile_seconds
-from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.protocols import ProtocolViews, build_protocol, view_counts
 from pipeline.data.images import read_mask
 from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
-from pipeline.data.scene import Scene
+from pipeline.data.scene import Scene, SceneTraits
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
 from pipeline.fit.init import from_point_cloud, random_in_box
 from pipeline.fit.trainer import Trainer, scene_extent
@@ -77,6 +77,15 @@ def with_sh_degree(g: Gaussians, degree: int) -> Gaussians:
 def views_schedule(views: ProtocolViews, cfg: EpisodeConfig) -> Schedule:
     return episode_schedule(len(views.initial_ids), views.budget, cfg.views_per_round,
                             cfg.epochs_per_view, cfg.fit.iterations,
+                            reload=cfg.post_selection == "reload")
+
+
+def planned_schedule(traits: SceneTraits, cfg: EpisodeConfig) -> Schedule:
+    """The schedule of an episode of ``cfg`` on a scene with ``traits`` (its format's), known
+    before the scene is read: the protocol's view counts (``view_counts``, the numbers
+    ``build_protocol`` takes) through the schedule rule; ``episode_plan`` of a read scene is the same."""
+    initial, budget = view_counts(traits, cfg.protocol)
+    return episode_schedule(initial, budget, cfg.views_per_round, cfg.epochs_per_view, cfg.fit.iterations,
                             reload=cfg.post_selection == "reload")
 
 
@@ -205,7 +214,8 @@ class Episode:
     def train(self, iterations: int, progress: bool) -> float:
         start = time.perf_counter()
         self.trainer.train(max(iterations, 0), progress=progress,
-                           desc=f"{self.cfg.strategy} {len(self.taken)} views", on_step=self.on_step)
+                           desc=f"{self.cfg.strategy} {len(self.taken)} views", on_step=self.on_step,
+                           settle=self.cfg.densify_settle or 0)
         return time.perf_counter() - start
 
     def evaluate_curve(self) -> dict:

@@ -64,6 +64,41 @@ def episode_schedule(initial: int, budget: int, views_per_round: int, epochs_per
     return Schedule(views, rounds, total - sum(rounds), total)
 
 
+@dataclass(frozen=True)
+class HeldEvent:
+    """A density event of the recipe (``FitConfig.density_events``) at trainer ``step``, in the
+    last steps before the evaluation at ``evaluation`` (a round's, or the final one)."""
+
+    step: int
+    kind: str  # densify | reset
+    evaluation: int
+
+
+def training_calls(schedule: Schedule, reload: bool = False) -> list[tuple[int, int]]:
+    """(first, last) trainer step of each training call of an episode, each ending in an
+    evaluation: the rounds', then the final phase. ``reload`` restarts the trainer at step 0
+    after every pick (the final phase then trains the whole horizon)."""
+    calls, done = [], 0
+    for n in schedule.round_iterations:
+        first = 1 if reload else done + 1
+        calls.append((first, first + n - 1))
+        done = 0 if reload else done + n
+    calls.append((done + 1, done + schedule.final_iterations))
+    return calls
+
+
+def events_before_evaluations(fit: FitConfig, schedule: Schedule, within: int,
+                              reload: bool = False) -> list[HeldEvent]:
+    """The density events of ``fit`` (the recipe as run) in the last ``within`` steps of each
+    training call: what ``densify_settle=within`` holds, and without it, what an evaluation
+    measures before the model has settled."""
+    out = []
+    for first, last in training_calls(schedule, reload):
+        for step in range(max(first, last - within + 1), last + 1):
+            out += [HeldEvent(step, kind, last) for kind in fit.density_events(step)]
+    return out
+
+
 def scaled_fit(fit: FitConfig, schedule: Schedule) -> FitConfig:
     """The fit recipe over the schedule's horizon (unchanged when it already is)."""
     return fit if fit.iterations == schedule.total else fit.scaled_to(schedule.total)

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.cli import command_name
 from pipeline.experiment.build import ConfigError, expand_jobs, plain_config
 from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
-from pipeline.experiment.plan import hyperparameter_text, plan_jobs, plan_text, slots
+from pipeline.experiment.plan import hyperparameter_text, plan_jobs, plan_text, schedule_text, slots
 from pipeline.experiment.schema import config_warnings
 from pipeline.experiment.sweep import run_sweep, sync_tracking, validate_sweep
 from pipeline.experiment.tracking import mlflow_runs_hint
@@ -91,6 +91,7 @@ def main(cfg: DictConfig) -> None:
             sys.exit(2)
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
         print(hyperparameter_text(jobs) + "\n")
+        print(schedule_text(jobs) + "\n")
         print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs),
                         config_warnings(plain_config(cfg))))
         return

@@ -21,7 +21,7 @@ from pipeline.bounds import FLOAT, INT, STR, bounded, require_bounds
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold, azimuths_deg, estimate_up, manifold_from_dict, member_ids
 from pipeline.data.sampling import probe_count
-from pipeline.data.scene import Scene
+from pipeline.data.scene import Scene, SceneTraits
 
 KINDS = ("global", "goal", "sparse")
 
@@ -98,11 +98,18 @@ def resolved_manifold(data: dict, scene: Scene, up: torch.Tensor):
     return manifold.resolve(scene.all_cameras())
 
 
-def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
-    blender = scene.traits.split == "given"  # the files' train / test splits (the Blender layout)
-    real_default = not blender and cfg.kind != "sparse"
+def view_counts(traits: SceneTraits, cfg: ProtocolConfig) -> tuple[int, int]:
+    """(initial views, budget) of ``cfg`` on a scene with ``traits``: the config's, else the
+    paper's defaults (Blender layout or sparse: 2 -> 10; a real scene: 4 -> 20)."""
+    real_default = traits.split != "given" and cfg.kind != "sparse"
     initial = cfg.initial_views if cfg.initial_views is not None else (4 if real_default else 2)
     budget = cfg.budget if cfg.budget is not None else (20 if real_default else 10)
+    return initial, budget
+
+
+def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
+    blender = scene.traits.split == "given"  # the files' train / test splits (the Blender layout)
+    initial, budget = view_counts(scene.traits, cfg)
     probes = cfg.probes if cfg.probes is not None else (25 if blender else 0.125)
     if blender:
         pool_split, test_split = "train", "test"

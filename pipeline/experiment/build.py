@@ -34,8 +34,9 @@ from pipeline.experiment.splat_section import job_form
 METHOD_KEYS = {"strategy", "options", "protocol", "splat", "world"}
 SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
               "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
-              "init", "fit", "reset_recovery"}
-# init (+splat.init=ply:PATH) and reset_recovery (+splat.reset_recovery=N) are optional; fit (conf/splat/<preset>.yaml lists the recipe, e.g.
+              "init", "fit", "reset_recovery", "densify_settle"}
+# init (+splat.init=ply:PATH), reset_recovery (+splat.reset_recovery=N) and densify_settle
+# (+splat.densify_settle=N) are optional; fit (conf/splat/<preset>.yaml lists the recipe, e.g.
 # splat.fit.lr.means_init=1e-4) reaches a job as what differs from the preset (splat_section.job_form),
 # so the presets' hashes do not change; `gopre-run ... plan=true` lists every hyperparameter a job runs with.
 # Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
@@ -252,7 +253,8 @@ def episode_config(job: Job) -> EpisodeConfig:
     fit = fit.with_changes(seed=job.seed)
     protocol = _protocol(job.protocol)
     changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
-                                      "views_per_round", "pool_keep_fraction", "lpips", "init", "reset_recovery")
+                                      "views_per_round", "pool_keep_fraction", "lpips", "init", "reset_recovery",
+                                      "densify_settle")
                if splat.get(k) is not None}
     if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
         changes["curve_test_views"] = None

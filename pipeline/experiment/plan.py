@@ -11,6 +11,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from pipeline.active.episode import planned_schedule
+from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit
+from pipeline.data.readers import traits_of
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.spec import Job
 
@@ -55,7 +58,7 @@ def hyperparameter_text(jobs: list[Job]) -> str:
         cfg = job.episode
         values = {**{f"fit.{k}": v for k, v in cfg.fit.flat().items() if k != "seed"},
                   **{k: getattr(cfg, k) for k in ("epochs_per_view", "views_per_round", "pool_keep_fraction",
-                                                  "post_selection", "curve_test_views", "lpips")}}
+                                                  "post_selection", "reset_recovery", "densify_settle", "curve_test_views", "lpips")}}
         text = "\n".join(f"  {k} = {v}" for k, v in values.items())
         groups.setdefault(text, []).append(f"{job.method} on {job.scene}")
     out = []
@@ -65,6 +68,76 @@ def hyperparameter_text(jobs: list[Job]) -> str:
                 f"(override any with splat.fit.<name>=value, conf/splat/ lists them; fit.iterations through splat.iterations; an "
                 f"episode whose rounds need more iterations rescales the recipe, pipeline/active/schedule.py):",
                 text]
+    return "\n".join(out)
+
+
+def evaluation_steps(schedule: Schedule, reload: bool) -> list[int]:
+    """The trainer step at which each round evaluates and picks: the rounds' iterations summed
+    (``reload`` restarts the trainer after every pick, so each round's own count)."""
+    if reload:
+        return list(schedule.round_iterations)
+    steps, done = [], 0
+    for n in schedule.round_iterations:
+        done += n
+        steps.append(done)
+    return steps
+
+
+def held_line(cfg, run, schedule: Schedule) -> str:
+    """The density events close before an evaluation: those ``densify_settle`` holds, or without
+    it those less than a densification interval before one (which it could hold)."""
+    reload = cfg.post_selection == "reload"
+    settle = cfg.densify_settle
+    events = events_before_evaluations(run, schedule, settle or run.densify.interval, reload)
+    listed = ", ".join(f"{e.kind} at {e.step} ({e.evaluation - e.step} before the evaluation at {e.evaluation})"
+                       for e in events) or "none"
+    if settle:
+        return f"  densify_settle={settle} holds these density events: {listed}"
+    return (f"  density events less than a densification interval ({run.densify.interval} steps) before an "
+            f"evaluation (+splat.densify_settle=N holds those in the last N steps): {listed}")
+
+
+def schedule_lines(job: Job, schedule: Schedule) -> list[str]:
+    """An episode's schedule in words, then each recipe value the schedule's rescaling changes
+    (as written -> as run)."""
+    cfg = job.episode
+    reload = cfg.post_selection == "reload"
+    views = schedule.round_views
+    written = cfg.fit
+    run = scaled_fit(written, schedule)
+    head = f"{len(views)} rounds ({views[0]} to {views[-1]} views, {cfg.views_per_round} picked a round)"
+    lines = [f"  {head}: the rounds train {', '.join(map(str, schedule.round_iterations))} steps"
+             f"{' (each from scratch: post_selection=reload)' if reload else ''}, evaluating at step "
+             f"{', '.join(map(str, evaluation_steps(schedule, reload)))}; then "
+             f"{schedule.final_iterations} after the last pick"]
+    lines.append(held_line(cfg, run, schedule))
+    if run is written:
+        lines.append(f"  {schedule.total} steps in all: the recipe runs as written")
+        return lines
+    lines.append(f"  {schedule.total} steps in all, so the recipe of {written.iterations} runs rescaled "
+                 f"x{schedule.total / written.iterations:.2f}, a value set with splat.fit.* with it "
+                 f"(as written -> as run):")
+    before, after = written.flat(), run.flat()
+    lines += [f"    fit.{k} = {before[k]} -> {after[k]}" for k in before if k != "seed" and before[k] != after[k]]
+    return lines
+
+
+def schedule_text(jobs: list[Job]) -> str:
+    """What the episode jobs run, once per distinct schedule with the jobs that follow it: each
+    round's training steps and the step of its evaluation, the density events close before an
+    evaluation, and the fit recipe after an episode longer than the recipe rescales it
+    (``pipeline.active.schedule``), which ``hyperparameter_text`` shows as written. From the
+    config and the scene's format alone: the same before a generated scene exists."""
+    groups: dict[str, list[str]] = {}
+    for job in jobs:
+        if job.kind == "episode":
+            text = "\n".join(schedule_lines(job, planned_schedule(traits_of(job.format), job.episode)))
+            groups.setdefault(text, []).append(f"{job.method} on {job.scene}")
+    out = []
+    for text, users in groups.items():
+        names = sorted(set(users))
+        out += [f"schedule of {', '.join(names[:4])}{' ...' if len(names) > 4 else ''} "
+                f"(pipeline/active/schedule.py):", text]
     return "\n".join(out)
 
 

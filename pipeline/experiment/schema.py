@@ -100,7 +100,7 @@ SPLAT_FIELDS = {"iterations": (FitConfig, "iterations"), "image_width": (FitConf
                 "max_gaussians": (DensifyConfig, "max_gaussians"),
                 **{name: (EpisodeConfig, name) for name in ("epochs_per_view", "curve_test_views", "post_selection",
                                                             "views_per_round", "pool_keep_fraction", "lpips",
-                                                            "reset_recovery")}}
+                                                            "reset_recovery", "densify_settle")}}
 
 
 # FitConfig fields a sweep sets through other keys: ``splat.iterations`` (it rescales every schedule)

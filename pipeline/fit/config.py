@@ -78,6 +78,21 @@ class FitConfig:
                              "every schedule), not as a fit override")
         return _overridden(self, overrides, "")
 
+    def density_events(self, step: int) -> tuple[str, ...]:
+        """What 3DGS's adaptive density control does after training step ``step`` (1-based) of
+        this recipe, in order: ``"densify"`` (clone, split and prune) every ``interval`` steps
+        strictly between ``start`` and ``stop``; ``"reset"`` (the periodic opacity reset) every
+        ``opacity_reset_interval`` steps before ``stop``, unless off or in the last tenth of the
+        run (no time left to recover the opacities)."""
+        d = self.densify
+        events = ()
+        if d.start < step < d.stop and step % d.interval == 0:
+            events += ("densify",)
+        late = step > 0.9 * self.iterations
+        if d.periodic_opacity_reset and step < d.stop and step % d.opacity_reset_interval == 0 and not late:
+            events += ("reset",)
+        return events
+
     def flat(self) -> dict[str, object]:
         """Every hyperparameter as ``dotted.name -> value`` (what ``with_overrides`` accepts)."""
         return _flat(asdict(self), "")

@@ -87,6 +87,7 @@ class Trainer:
         self.extent = extent if extent is not None else scene_extent(cameras)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.step = 0
+        self._settle_from: int | None = None  # no density event after this step (``train``'s settle)
         self.params = {k: v.detach().clone().requires_grad_(True) for k, v in gaussians.params().items()}
         lr = config.lr
         rates = {"means": lr.means_init * self.extent, "log_scales": lr.log_scales, "quats": lr.quats,
@@ -258,21 +259,36 @@ class Trainer:
         return Gaussians.unchecked(**self.params)
 
     def _density_control(self) -> None:
+        """The recipe's density events of this step (``FitConfig.density_events``), none while
+        ``train``'s ``settle`` holds them (its last steps); a held densification's gradient
+        statistics carry on into the next one."""
+        if self._settle_from is not None and self.step > self._settle_from:
+            return
         dcfg = self.config.densify
-        if self.step < dcfg.stop and self.step > dcfg.start and self.step % dcfg.interval == 0:
+        events = self.config.density_events(self.step)
+        if "densify" in events:
             self.params = densify_and_prune(self.params, self.optimizer, self.stats, dcfg, self.extent,
                                             self.step > dcfg.prune_large_after, self.generator)
             self.stats = DensifyStats.zeros(self.params["means"].shape[0], self.stats.grad_sum)
-        # a reset in the last tenth of the run would leave no time to recover the opacities
-        late = self.step > 0.9 * self.config.iterations
-        periodic = dcfg.periodic_opacity_reset and self.step % dcfg.opacity_reset_interval == 0
-        if self.step < dcfg.stop and periodic and not late:
+        if "reset" in events:
             self.reset_opacity()
 
     def train(self, iterations: int, progress: bool = False, desc: str = "fit",
-              on_step: Callable[[int, int, StepInfo], None] | None = None) -> StepInfo | None:
+              on_step: Callable[[int, int, StepInfo], None] | None = None, settle: int = 0) -> StepInfo | None:
         """Run ``iterations`` steps; shows a progress bar (loss, PSNR, #Gaussians) if asked;
-        ``on_step(done, iterations, info)`` hears every step (it decides how often to say so)."""
+        ``on_step(done, iterations, info)`` hears every step (it decides how often to say so).
+        ``settle``: no density event (densification, prune, periodic opacity reset) in the last
+        ``settle`` of these steps, so what is evaluated after them has settled."""
+        if settle < 0:
+            raise ValueError(f"settle must be >= 0, got {settle}")
+        self._settle_from = self.step + iterations - settle if settle else None
+        try:
+            return self._train(iterations, progress, desc, on_step)
+        finally:
+            self._settle_from = None
+
+    def _train(self, iterations: int, progress: bool, desc: str,
+               on_step: Callable[[int, int, StepInfo], None] | None) -> StepInfo | None:
         info = None
         bar = tqdm(total=iterations, desc=desc, disable=not progress, leave=False, mininterval=1.0)
         for done in range(1, iterations + 1):
