@@ -395,3 +395,34 @@ def test_a_figure_regenerated_is_the_same_file(tmp_path):
         digests.append((tmp_path / f"f{k}.pdf").read_bytes())
         time.sleep(1.1)  # the PDF date has one-second resolution
     assert digests[0] == digests[1]
+
+
+def test_sweeps_compared_by_sweep_get_a_grid_of_one_method_under_each_sweep(tmp_path):
+    """``--by-sweep``: the grid's columns are the reference method (gopre) in each sweep, each
+    render read from its own sweep's folder, not the first sweep's methods again; a scene only
+    one sweep ran gets none."""
+    from PIL import Image
+
+    from pipeline.report.report import combine_records, make_figures
+    sources = []
+    for name, shade in (("reset", 40), ("noreset", 200)):
+        folder = tmp_path / name
+        rows = []
+        jobs = [("random", "bonsai", 0), ("gopre", "bonsai", 7)] + ([("gopre", "lego", 3)] if name == "reset" else [])
+        for i, (method, scene, offset) in enumerate(jobs):
+            row = {**final_row(method, "d", scene, 0, 20.0, 0.5), "sweep": name, "job_index": i,
+                   "config_hash": f"{method}-{scene}-same-hash"}  # the same job in both sweeps
+            renders = folder / "jobs" / row["config_hash"] / "artifacts" / "renders"
+            renders.mkdir(parents=True)
+            image = np.concatenate([np.zeros((8, 8, 3), np.uint8), np.full((8, 8, 3), shade + offset, np.uint8)], 1)
+            Image.fromarray(image).save(renders / "test_0001.png")
+            rows.append(row)
+        sources.append(records_path(pd.DataFrame(rows), folder))
+    frame = combine_records(sources, by_sweep=True)
+    made = make_figures(frame, tmp_path / "reset", tmp_path / "out")
+    assert made["qualitative.png"]["columns"] == ["ground truth", "gopre (reset)", "gopre (noreset)"]
+    assert "qualitative_lego.png" not in made  # one sweep's scene: its own report has the grid
+    from pipeline.report.report import grid_images
+    chosen = grid_images(tmp_path / "reset", frame[frame["kind"] == "final"], "renders", "bonsai")
+    assert {k: int(np.asarray(Image.open(f[0]))[0, 8, 0]) for k, f in chosen.items()} == \
+        {"gopre (reset)": 47, "gopre (noreset)": 207}

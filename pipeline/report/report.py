@@ -85,6 +85,8 @@ def combine_records(sources: list[str | Path], by_sweep: bool = False) -> pd.Dat
     frames, offset, named = [], 0, {}
     for source in sources:
         frame = load_records(source).copy()
+        # where each row's job folders are (the figures' renders): the sweep folder
+        frame["sweep_dir"] = str(Path(source) if Path(source).is_dir() else Path(source).parent)
         if by_sweep:
             for name in dict.fromkeys(frame["sweep"]):
                 if name in named:
@@ -274,29 +276,39 @@ def ause_table(frame: pd.DataFrame, title: str) -> list[Table]:
 
 
 def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
-                     scene: str | None = None) -> dict[str, list[Path]]:
+                scene: str | None = None, reference: str | None = None) -> dict[str, list[Path]]:
     """The first four ``sub`` images of each column of one scene's grid (default: the first
-    scene), from its first seed: one column per method at the scene's first setting, or, when
-    one method ran, one per setting."""
-    if sweep_dir is None or final.empty:
+    scene), from its first seed: one column per method at the scene's first setting; when one
+    method ran, or the rows come from several sweeps compared by sweep, one per setting of one
+    method (the reference: gopre, else the first), and no grid of a scene only one of those sweeps
+    ran. A row's images are under its own sweep's
+    folder (``sweep_dir`` column of combined records), else under ``sweep_dir``."""
+    if final.empty or (sweep_dir is None and "sweep_dir" not in final):
         return {}
+    compared = "sweep" in final and final["sweep"].nunique() > 1 and final["setting"].nunique() > 1
     part = final[final["scene"] == (scene if scene is not None else final["scene"].iloc[0])]
     part = part.assign(setting=part["setting"].fillna("") if "setting" in part else "")
     part = part[part["seed"] == part["seed"].min()]
-    if part["method"].nunique() > 1:
+    if compared and part["sweep"].nunique() < 2:
+        return {}  # a scene only one of the compared sweeps ran: its own report has its grid
+    if part["method"].nunique() > 1 and not compared:
         part = part[part["setting"] == part["setting"].iloc[0]].drop_duplicates("method")
         labels = list(part["method"])
     else:
-        part = part.drop_duplicates("setting")
+        one = default_reference(list(dict.fromkeys(part["method"])), reference) or part["method"].iloc[0]
+        part = part[part["method"] == one].drop_duplicates("setting")
         labels = [f"{m} ({s})" if s else m for m, s in zip(part["method"], part["setting"])]
+    folders = (part["sweep_dir"] if "sweep_dir" in part else pd.Series([None] * len(part), index=part.index))
     out = {}
-    for label, config_hash in zip(labels, part["config_hash"]):
-        folder = sweep_dir / "jobs" / config_hash / "artifacts" / sub
-        out[label] = sorted(folder.glob("*.png"))[:4] if folder.exists() else []
+    for label, config_hash, own in zip(labels, part["config_hash"], folders):
+        root = Path(own) if isinstance(own, str) else sweep_dir
+        folder = root / "jobs" / config_hash / "artifacts" / sub if root is not None else None
+        out[label] = sorted(folder.glob("*.png"))[:4] if folder is not None and folder.exists() else []
     return out
 
 
-def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict[str, dict]:
+def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
+                 reference: str | None = None) -> dict[str, dict]:
     fig_dir = out / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     made = {}
@@ -309,7 +321,7 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path) -> dict
             curves, finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
     final = finished(frame, "final", "episode")
     for k, scene in enumerate(dict.fromkeys(final["scene"])):  # one grid per scene (paper Fig. 5)
-        renders = grid_images(sweep_dir, final, "renders", scene)
+        renders = grid_images(sweep_dir, final, "renders", scene, reference)
         if any(renders.values()):
             name = "qualitative.png" if k == 0 else f"qualitative_{scene}.png"
             made[name] = figures.qualitative_grid(renders, fig_dir / name)
@@ -384,7 +396,7 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     markdown = "".join(render_markdown(t) + "\n" for t in tables)
     (out / "table.md").write_text(markdown)
     (out / "table.tex").write_text("\n".join(render_latex(t) for t in tables))
-    made = make_figures(frame, sweep_dir, out)
+    made = make_figures(frame, sweep_dir, out, reference)
     runs = runs_table(frame)
     runs.to_csv(out / "runs.csv", index=False)
     failed = runs[runs["status"] != "FINISHED"]
