@@ -426,3 +426,30 @@ def test_sweeps_compared_by_sweep_get_a_grid_of_one_method_under_each_sweep(tmp_
     chosen = grid_images(tmp_path / "reset", frame[frame["kind"] == "final"], "renders", "bonsai")
     assert {k: int(np.asarray(Image.open(f[0]))[0, 8, 0]) for k, f in chosen.items()} == \
         {"gopre (reset)": 47, "gopre (noreset)": 207}
+
+
+def test_a_report_regenerated_into_its_folder_keeps_only_its_own_figures(tmp_path):
+    """An earlier report's grid of a scene the new records lack is removed (PNG and PDF); what is
+    not a figure, or outside figures/, stays."""
+    from PIL import Image
+
+    from pipeline.report.report import make_report
+    sweep = tmp_path / "sweep"
+    rows = []
+    for i, scene in enumerate(("lego", "bonsai")):
+        row = {**final_row("gopre", "d", scene, 0, 20.0, 0.5), "job_index": i}
+        renders = sweep / "jobs" / row["config_hash"] / "artifacts" / "renders"
+        renders.mkdir(parents=True)
+        Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(renders / "test_0001.png")
+        rows.append(row)
+    records_path(pd.DataFrame(rows), sweep)
+    out = tmp_path / "report"
+    first = make_report(sweep, out)
+    assert {"qualitative.png", "qualitative_bonsai.png"} <= set(first["figures"]) and not first["removed_figures"]
+    (out / "figures" / "notes.txt").write_text("mine")
+    (out / "keep.png").write_bytes(b"not the report's")
+    frame = pd.DataFrame(rows[:1])
+    second = make_report(sweep, out, frame)
+    assert second["removed_figures"] == ["qualitative_bonsai.pdf", "qualitative_bonsai.png"]
+    assert sorted(p.name for p in (out / "figures").iterdir()) == ["notes.txt", "qualitative.pdf", "qualitative.png"]
+    assert (out / "keep.png").exists()

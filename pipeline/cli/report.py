@@ -139,6 +139,9 @@ def main(argv=None) -> int:
     if args.paper_only:
         print(f"written {summary['out']}/paper.md")
         return 0
+    if summary.get("removed_figures"):
+        print(f"removed from {summary['out']}/figures what an earlier report there drew and this one does "
+              f"not: {', '.join(summary['removed_figures'])}")
     print(f"report written to {summary['out']}/report.md ({summary['runs']} runs, {summary['failed']} failed); "
           f"figures: {', '.join(summary['figures']) or 'none'}")
     return 0

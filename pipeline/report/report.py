@@ -380,6 +380,17 @@ def frame_to_markdown(frame: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def remove_stale_figures(fig_dir: Path, made: dict) -> list[str]:
+    """Remove the PNG and PDF files in the report's own ``figures/`` that this report did not
+    draw (an earlier report into the same folder drew them, from other records): a regenerated
+    report holds only its own figures. Returns the names removed."""
+    keep = {Path(name).stem for name in made}
+    stale = sorted(p.name for p in fig_dir.glob("*") if p.suffix in (".png", ".pdf") and p.stem not in keep)
+    for name in stale:
+        (fig_dir / name).unlink()
+    return stale
+
+
 def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None,
                 reference: str | None = None, baseline_setting: str | None = None) -> dict:
     """Write report.md, tables (.md, .tex), figures/, falls.csv and runs.csv into ``out``; returns
@@ -408,6 +419,7 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
                   "`splat.curve_test_views`); the tables' final PSNR uses every test view, so a curve's "
                   "last point differs from its table cell. Every figure is also in `figures/` as PDF.", ""]
     lines += [f"![{name}](figures/{name})" for name in made]
+    stale = remove_stale_figures(out / "figures", made)
     lines += ["", "## Runs used", "",
               f"{len(runs)} jobs from sweep `{title}`, seeds {seeds}; {len(failed)} failed (excluded). "
               "Every row: config hash and MLflow run id (runs.csv).", "",
@@ -415,4 +427,4 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     (out / "report.md").write_text("\n".join(lines) + "\n")
     return {"out": str(out), "tables": markdown, "figures": {k: json.loads(json.dumps(v, default=str))
                                                              for k, v in made.items()},
-            "runs": len(runs), "failed": len(failed)}
+            "runs": len(runs), "failed": len(failed), "removed_figures": stale}
