@@ -123,6 +123,8 @@ def test_the_cli_compares_sweeps_against_the_first_and_refuses_one_sweep(tmp_pat
     assert main([str(tmp_path / "first"), str(tmp_path / "second"), "--by-sweep",
                  "--out", str(tmp_path / "out")]) == 0
     assert "| a: second | 2 | +1.00" in capsys.readouterr().out
+    report = (tmp_path / "out" / "report.md").read_text()  # named after both sweeps, not the first
+    assert report.startswith("# Report: first + second\n") and "jobs from sweeps `first`, `second`," in report
     with pytest.raises(SystemExit):
         main([str(tmp_path / "first"), "--by-sweep", "--out", str(tmp_path / "out2")])
     assert "give two or more sweep folders" in capsys.readouterr().err

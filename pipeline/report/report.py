@@ -400,7 +400,8 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     frame = load_records(source) if frame is None else in_config_order(frame)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    title = str(frame["sweep"].iloc[0])
+    sweeps = [str(name) for name in dict.fromkeys(frame["sweep"])]
+    title = " + ".join(sweeps)  # several when sweeps are reported together (or compared by sweep)
     methods = list(dict.fromkeys(finished(frame, "final")["method"]))
     tables = (episode_tables(frame, title, reference, baseline_setting) + ause_table(frame, title)
               + search.twin_tables(frame, title, skip=default_reference(methods, reference)))
@@ -421,7 +422,8 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     lines += [f"![{name}](figures/{name})" for name in made]
     stale = remove_stale_figures(out / "figures", made)
     lines += ["", "## Runs used", "",
-              f"{len(runs)} jobs from sweep `{title}`, seeds {seeds}; {len(failed)} failed (excluded). "
+              f"{len(runs)} jobs from sweep{'s' if len(sweeps) > 1 else ''} "
+              f"{', '.join(f'`{name}`' for name in sweeps)}, seeds {seeds}; {len(failed)} failed (excluded). "
               "Every row: config hash and MLflow run id (runs.csv).", "",
               frame_to_markdown(runs)]
     (out / "report.md").write_text("\n".join(lines) + "\n")
