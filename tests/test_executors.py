@@ -70,6 +70,23 @@ def test_a_local_job_records_where_and_under_what_it_ran(tmp_path):
     assert final["node"] == "local" and final["host"] == os.uname().nodename
     assert final["worker_code_version"] == code_version() and final["packages"] == environment().packages
     assert final["starts"] == 1 and final["elapsed_seconds"] >= final["wall_seconds"] > 0
+    assert final["numerics"] == environment().numerics  # the code paths that move the digits
+
+
+def test_the_numeric_code_paths_name_torch_mkl_and_numba_as_configured(monkeypatch):
+    """What moves a result's last digits (reports/reproduce/README.md): torch's CPU capability,
+    MKL's branch and numba's target CPU, each as this process has it."""
+    import torch
+
+    from pipeline.experiment.provenance import numeric_paths
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    monkeypatch.delenv("NUMBA_CPU_NAME", raising=False)
+    import llvmlite.binding as llvm
+    assert numeric_paths() == (f"torch {torch.backends.cpu.get_cpu_capability()}, MKL auto, "
+                               f"numba {llvm.get_host_cpu_name()}")
+    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    monkeypatch.setenv("NUMBA_CPU_NAME", "haswell")
+    assert numeric_paths().endswith(", MKL COMPATIBLE, numba haswell")
 
 
 def test_the_environment_identity_follows_the_installed_packages(monkeypatch):

@@ -31,10 +31,12 @@ def test_a_published_episode_reproduces_its_digits(episode, monkeypatch):
     argv = [str(local) if a == str(scene) else a for a in episode["argv"]]
     monkeypatch.chdir(ROOT)
     (row,) = main(argv)
+    where = (f"published under {episode['numerics']!r}, run here under {row['numerics']!r} "
+             "(reports/reproduce/README.md: which code paths move the digits)")
     assert row["initial"] == episode["initial"]
-    assert row["selected"] == episode["selected"]
+    assert row["selected"] == episode["selected"], where
     assert row["final_psnr_full"] == episode["final_psnr_full"], (
-        f"{episode['command']}: {row['final_psnr_full']!r}, published {episode['final_psnr_full']!r}")
+        f"{episode['command']}: {row['final_psnr_full']!r}, published {episode['final_psnr_full']!r}; {where}")
 
 
 def readme_demo_table() -> dict[str, float]:

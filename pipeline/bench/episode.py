@@ -20,6 +20,7 @@ from pipeline.active import episode_preset, run_episode
 from pipeline.bench.measure import BACKEND_VARIANTS, backend_variant, machine_load
 from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolConfig
+from pipeline.experiment.provenance import numeric_paths
 
 
 def main(argv=None) -> list[dict]:
@@ -76,7 +77,7 @@ def run_one(args, backend: str) -> dict:
             "selection_total_s": round(sum(r.selection_seconds for r in result.rounds), 1),
             "train_s": round(sum(r.train_seconds for r in result.rounds), 1),
             "num_gaussians": result.final.num_gaussians, "threads": torch.get_num_threads(),
-            "load_avg_1m": round(machine_load(), 2)}
+            "load_avg_1m": round(machine_load(), 2), "numerics": numeric_paths()}
 
 
 if __name__ == "__main__":

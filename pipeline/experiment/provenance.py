@@ -62,12 +62,14 @@ def stale_versions(finished: dict[str, str | None], current: str) -> dict[str, i
 class Environment:
     """packages: sha256 (12 hex) of the sorted ``name==version`` of every installed distribution
     but gopre itself; locked: they are exactly the lock file's pins (None: no lock file beside the
-    code); cpu: the CPU model; python: the interpreter's version."""
+    code); cpu: the CPU model; python: the interpreter's version; numerics: the arithmetic's code
+    paths on this machine (``numeric_paths``), which move the last digits of a result."""
 
     packages: str
     locked: bool | None
     cpu: str
     python: str
+    numerics: str = ""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -130,6 +132,24 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def numeric_paths() -> str:
+    """Which vector code paths the arithmetic takes here, as one line: torch's CPU kernels (its
+    capability: DEFAULT, AVX2, AVX512; ``ATEN_CPU_CAPABILITY`` lowers it), MKL's branch
+    (``MKL_CBWR``; auto: MKL picks by the CPU) and the CPU numba compiles the kernels for
+    (``NUMBA_CPU_NAME``, else the host's). The same code and packages give other digits on
+    another path (measured in ``reports/reproduce/README.md``)."""
+    import os
+
+    import torch
+    try:
+        import llvmlite.binding as llvm
+        numba_cpu = os.environ.get("NUMBA_CPU_NAME") or llvm.get_host_cpu_name()
+    except Exception:  # noqa: BLE001 - provenance must never fail a job
+        numba_cpu = "unknown"
+    return (f"torch {torch.backends.cpu.get_cpu_capability()}, MKL {os.environ.get('MKL_CBWR', 'auto')}, "
+            f"numba {numba_cpu}")
+
+
 @lru_cache(maxsize=None)
 def environment() -> Environment:
     installed = installed_pins()
@@ -138,4 +158,4 @@ def environment() -> Environment:
     if LOCK_FILE.exists():
         locked = not lock_differences(installed, read_lock())
     return Environment(hashlib.sha256(text.encode()).hexdigest()[:12], locked, cpu_model(),
-                       platform.python_version())
+                       platform.python_version(), numeric_paths())

@@ -105,13 +105,14 @@ def uncertainty_rows(base: dict, result: UncertaintyResult, seconds: float) -> l
 
 def worker_columns(outcome: JobOutcome) -> dict:
     """Where and under what the job ran (``executors.worker``): host, node, the worker's code
-    version and packages, CPU model, how many times it started (retries on another node,
+    version and packages, CPU model and the arithmetic's code paths, how many times it started (retries on another node,
     requeues, relaunches) and the seconds from its first start to its end."""
     w = outcome.worker
     if not w:
         return {}
     return {"host": w.get("host"), "node": w.get("node"), "worker_code_version": w.get("code_version"),
             "packages": w.get("packages"), "packages_locked": w.get("locked"), "cpu": w.get("cpu"),
+            "numerics": w.get("numerics"),
             "starts": w.get("starts"),
             # numba's one-time compilation in this job (training and selection), seconds of wall_seconds
             "job_compile_seconds": w.get("compile_seconds"),

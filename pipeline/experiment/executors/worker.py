@@ -107,6 +107,6 @@ def run_here(job: Job, scene: Scene | None = None, report: Report | None = None,
     env = environment()
     outcome.worker = {"host": starts[-1]["host"], "node": starts[-1]["node"], "pid": os.getpid(),
                       "code_version": code_version(), "packages": env.packages, "locked": env.locked,
-                      "cpu": env.cpu, "starts": len(starts), "first_started": starts[0]["started"],
+                      "cpu": env.cpu, "numerics": env.numerics, "starts": len(starts), "first_started": starts[0]["started"],
                       "ended": time.time(), "compile_seconds": round(compile_seconds() - compiling, 3)}
     return outcome
