@@ -11,11 +11,13 @@ from pathlib import Path
 
 import pandas as pd
 
+from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import planned_schedule
-from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit
+from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit, training_calls
 from pipeline.data.readers import traits_of
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.spec import Job
+from pipeline.fit.config import FitConfig
 
 
 @dataclass
@@ -71,19 +73,7 @@ def hyperparameter_text(jobs: list[Job]) -> str:
     return "\n".join(out)
 
 
-def evaluation_steps(schedule: Schedule, reload: bool) -> list[int]:
-    """The trainer step at which each round evaluates and picks: the rounds' iterations summed
-    (``reload`` restarts the trainer after every pick, so each round's own count)."""
-    if reload:
-        return list(schedule.round_iterations)
-    steps, done = [], 0
-    for n in schedule.round_iterations:
-        done += n
-        steps.append(done)
-    return steps
-
-
-def held_line(cfg, run, schedule: Schedule) -> str:
+def held_line(cfg: EpisodeConfig, run: FitConfig, schedule: Schedule) -> str:
     """The density events close before an evaluation: those ``densify_settle`` holds, or without
     it those less than a densification interval before one (which it could hold)."""
     reload = cfg.post_selection == "reload"
@@ -108,7 +98,7 @@ def schedule_lines(job: Job, schedule: Schedule) -> list[str]:
     head = f"{len(views)} rounds ({views[0]} to {views[-1]} views, {cfg.views_per_round} picked a round)"
     lines = [f"  {head}: the rounds train {', '.join(map(str, schedule.round_iterations))} steps"
              f"{' (each from scratch: post_selection=reload)' if reload else ''}, evaluating at step "
-             f"{', '.join(map(str, evaluation_steps(schedule, reload)))}; then "
+             f"{', '.join(str(last) for _, last in training_calls(schedule, reload)[:-1])}; then "
              f"{schedule.final_iterations} after the last pick"]
     lines.append(held_line(cfg, run, schedule))
     if run is written:

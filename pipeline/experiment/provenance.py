@@ -15,6 +15,7 @@ whose code version or packages differ from the driver's.
 from __future__ import annotations
 
 import hashlib
+import os
 import platform
 import subprocess
 from dataclasses import asdict, dataclass
@@ -138,9 +139,7 @@ def numeric_paths() -> str:
     (``MKL_CBWR``; auto: MKL picks by the CPU) and the CPU numba compiles the kernels for
     (``NUMBA_CPU_NAME``, else the host's). The same code and packages give other digits on
     another path (measured in ``reports/reproduce/README.md``)."""
-    import os
-
-    import torch
+    import torch  # when asked: reading records needs no torch
     try:
         import llvmlite.binding as llvm
         numba_cpu = os.environ.get("NUMBA_CPU_NAME") or llvm.get_host_cpu_name()
