@@ -453,3 +453,30 @@ def test_a_report_regenerated_into_its_folder_keeps_only_its_own_figures(tmp_pat
     assert second["removed_figures"] == ["qualitative_bonsai.pdf", "qualitative_bonsai.png"]
     assert sorted(p.name for p in (out / "figures").iterdir()) == ["notes.txt", "qualitative.pdf", "qualitative.png"]
     assert (out / "keep.png").exists()
+
+
+def test_no_images_leaves_every_picture_of_the_scene_out_of_the_report(tmp_path, capsys):
+    """``--no-images`` (a capture whose license keeps its photos out of a published report): no
+    grid of ground truth and renders, the curves still drawn, a grid an earlier report drew into
+    the folder removed, and the report says why there is none."""
+    from PIL import Image
+
+    from pipeline.cli.report import main
+    sweep = tmp_path / "sweep"
+    rows = []
+    for seed in (0, 1):
+        row = {**final_row("gopre", "d", "alexander", seed, 20.0, 0.5), "job_index": seed}
+        renders = sweep / "jobs" / row["config_hash"] / "artifacts" / "renders"
+        renders.mkdir(parents=True)
+        Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(renders / "test_0001.png")
+        rows += [row, {**row, "kind": "round", "num_views": 4, "iteration": 100, "test_psnr": 18.0},
+                 {**row, "kind": "round", "num_views": 5, "iteration": 225, "test_psnr": 19.0}]
+    records_path(pd.DataFrame(rows), sweep)
+    out = tmp_path / "report"
+    assert main([str(sweep), "--out", str(out)]) == 0
+    assert (out / "figures" / "qualitative.png").exists()
+    assert main([str(sweep), "--out", str(out), "--no-images"]) == 0
+    assert sorted(p.name for p in (out / "figures").iterdir()) == ["psnr_vs_views.pdf", "psnr_vs_views.png"]
+    report = (out / "report.md").read_text()
+    assert "qualitative" not in report and "made with `--no-images`" in report
+    assert "removed from" in capsys.readouterr().out

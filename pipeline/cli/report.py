@@ -85,6 +85,10 @@ def main(argv=None) -> int:
     parser.add_argument("--benchmark", action="append", default=[], metavar="FILE",
                         help="benchmark definitions (gopre-data benchmark PRESET --out FILE) the --results "
                              "are checked against; repeatable")
+    parser.add_argument("--no-images", action="store_true",
+                        help="curves only: no figure made of the scenes' images (qualitative grids with their "
+                             "ground truth, uncertainty maps), for data whose license keeps its pictures out "
+                             "of a published report")
     parser.add_argument("--paper-only", action="store_true",
                         help="with --paper: write only paper.md into --out (no tables, figures, run list)")
     args = parser.parse_args(argv)
@@ -125,7 +129,8 @@ def main(argv=None) -> int:
                        "failed": 0, "figures": {}}
             Path(out).mkdir(parents=True, exist_ok=True)
         else:
-            summary = make_report(source, out, frame, args.reference, baseline_setting(frame, args))
+            summary = make_report(source, out, frame, args.reference, baseline_setting(frame, args),
+                                  images=not args.no_images)
         if args.paper is not None:
             from pipeline.report.paper import paper_report
             beside = paper_report(frame, None if args.paper == "auto" else args.paper)

@@ -308,7 +308,10 @@ def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
 
 
 def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
-                 reference: str | None = None) -> dict[str, dict]:
+                 reference: str | None = None, images: bool = True) -> dict[str, dict]:
+    """The report's figures; ``images=False``: curves only, no figure made of the scene's images
+    (the qualitative grids with their ground truth and renders, the uncertainty maps), for data
+    whose license keeps its pictures out of a published report."""
     fig_dir = out / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     made = {}
@@ -319,6 +322,8 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
     if not curves.empty:
         made["sparsification.png"] = figures.sparsification(
             curves, finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
+    if not images:
+        return made
     final = finished(frame, "final", "episode")
     for k, scene in enumerate(dict.fromkeys(final["scene"])):  # one grid per scene (paper Fig. 5)
         renders = grid_images(sweep_dir, final, "renders", scene, reference)
@@ -392,10 +397,12 @@ def remove_stale_figures(fig_dir: Path, made: dict) -> list[str]:
 
 
 def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None,
-                reference: str | None = None, baseline_setting: str | None = None) -> dict:
+                reference: str | None = None, baseline_setting: str | None = None,
+                images: bool = True) -> dict:
     """Write report.md, tables (.md, .tex), figures/, falls.csv and runs.csv into ``out``; returns
     a summary. ``reference``: the method the paired comparisons are against (default gopre when
-    present); ``baseline_setting``: the setting each method's others are paired against."""
+    present); ``baseline_setting``: the setting each method's others are paired against;
+    ``images=False``: no figure of the scenes' images (``make_figures``)."""
     sweep_dir = Path(source) if Path(source).is_dir() else None
     frame = load_records(source) if frame is None else in_config_order(frame)
     out = Path(out)
@@ -408,7 +415,7 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     markdown = "".join(render_markdown(t) + "\n" for t in tables)
     (out / "table.md").write_text(markdown)
     (out / "table.tex").write_text("\n".join(render_latex(t) for t in tables))
-    made = make_figures(frame, sweep_dir, out, reference)
+    made = make_figures(frame, sweep_dir, out, reference, images)
     runs = runs_table(frame)
     runs.to_csv(out / "runs.csv", index=False)
     failed = runs[runs["status"] != "FINISHED"]
@@ -420,6 +427,9 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
                   "`splat.curve_test_views`); the tables' final PSNR uses every test view, so a curve's "
                   "last point differs from its table cell. Every figure is also in `figures/` as PDF.", ""]
     lines += [f"![{name}](figures/{name})" for name in made]
+    if not images:
+        lines += ["", "No figure of the scenes' images (ground truth, renders, uncertainty maps): "
+                  "the report was made with `--no-images`."]
     stale = remove_stale_figures(out / "figures", made)
     lines += ["", "## Runs used", "",
               f"{len(runs)} jobs from sweep{'s' if len(sweeps) > 1 else ''} "
