@@ -298,12 +298,11 @@ def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
         one = default_reference(list(dict.fromkeys(part["method"])), reference) or part["method"].iloc[0]
         part = part[part["method"] == one].drop_duplicates("setting")
         labels = [f"{m} ({s})" if s else m for m, s in zip(part["method"], part["setting"])]
-    folders = (part["sweep_dir"] if "sweep_dir" in part else pd.Series([None] * len(part), index=part.index))
+    roots = [Path(d) for d in part["sweep_dir"]] if "sweep_dir" in part else [sweep_dir] * len(part)
     out = {}
-    for label, config_hash, own in zip(labels, part["config_hash"], folders):
-        root = Path(own) if isinstance(own, str) else sweep_dir
-        folder = root / "jobs" / config_hash / "artifacts" / sub if root is not None else None
-        out[label] = sorted(folder.glob("*.png"))[:4] if folder is not None and folder.exists() else []
+    for label, config_hash, root in zip(labels, part["config_hash"], roots):
+        folder = root / "jobs" / config_hash / "artifacts" / sub
+        out[label] = sorted(folder.glob("*.png"))[:4] if folder.exists() else []
     return out
 
 
