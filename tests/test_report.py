@@ -480,3 +480,20 @@ def test_no_images_leaves_every_picture_of_the_scene_out_of_the_report(tmp_path,
     report = (out / "report.md").read_text()
     assert "qualitative" not in report and "made with `--no-images`" in report
     assert "removed from" in capsys.readouterr().out
+
+
+def test_a_grid_beside_an_outside_result_reads_the_sweeps_renders_and_skips_the_outside_row(tmp_path):
+    """An outside method's rows (a result file: no job folder, no ``sweep_dir``, no config hash)
+    get an empty column; the sweep's rows still read their renders. Broke CI once (a Path of NaN)."""
+    from PIL import Image
+
+    from pipeline.report.report import grid_images
+    sweep_row = {**final_row("gopre", "d", "bonsai", 0, 20.0, 0.5), "config_hash": "abc", "sweep_dir": str(tmp_path)}
+    outside_row = {**final_row("mean_colour", "d", "bonsai", 0, 18.0, 0.5), "config_hash": np.nan,
+                   "sweep_dir": np.nan}
+    renders = tmp_path / "jobs" / "abc" / "artifacts" / "renders"
+    renders.mkdir(parents=True)
+    Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(renders / "test_0001.png")
+    frame = pd.DataFrame([sweep_row, outside_row])
+    assert grid_images(None, frame, "renders") == {"gopre": [renders / "test_0001.png"], "mean_colour": []}
+    assert grid_images(tmp_path, frame.drop(columns="sweep_dir"), "renders")["gopre"] == [renders / "test_0001.png"]

@@ -298,11 +298,16 @@ def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
         one = default_reference(list(dict.fromkeys(part["method"])), reference) or part["method"].iloc[0]
         part = part[part["method"] == one].drop_duplicates("setting")
         labels = [f"{m} ({s})" if s else m for m, s in zip(part["method"], part["setting"])]
-    roots = [Path(d) for d in part["sweep_dir"]] if "sweep_dir" in part else [sweep_dir] * len(part)
+    own = part["sweep_dir"] if "sweep_dir" in part else [None] * len(part)
     out = {}
-    for label, config_hash, root in zip(labels, part["config_hash"], roots):
-        folder = root / "jobs" / config_hash / "artifacts" / sub
-        out[label] = sorted(folder.glob("*.png"))[:4] if folder.exists() else []
+    for label, config_hash, folder in zip(labels, part["config_hash"], own):
+        root = Path(folder) if isinstance(folder, str) else sweep_dir
+        # a row from a result file (an outside method) has no job folder, hence no images
+        if root is None or not isinstance(config_hash, str):
+            out[label] = []
+            continue
+        images = root / "jobs" / config_hash / "artifacts" / sub
+        out[label] = sorted(images.glob("*.png"))[:4] if images.exists() else []
     return out
 
 
