@@ -109,6 +109,22 @@ def test_events_before_evaluations_lists_what_the_trainer_holds(monkeypatch):
         monkeypatch.undo()
 
 
+def test_density_event_steps_are_the_steps_the_rule_names_in_any_window():
+    """The enumeration ``events_before_evaluations`` uses (multiples of the two intervals) against
+    every step of the window asked one by one, on random recipes: starts, stops and intervals
+    that do not divide each other, windows from step 0 on, the reset on and off."""
+    rng = random.Random(1)
+    for _ in range(300):
+        densify = DensifyConfig(start=rng.randint(0, 50), stop=rng.randint(1, 400), interval=rng.randint(1, 40),
+                                opacity_reset_interval=rng.randint(1, 90),
+                                periodic_opacity_reset=rng.random() < 0.8)
+        fit = FitConfig(iterations=rng.randint(50, 500), densify=densify)
+        first = rng.randint(0, 300)
+        last = first + rng.randint(0, 200)
+        assert fit.density_event_steps(first, last) == \
+            [s for s in range(max(first, 1), last + 1) if fit.density_events(s)], (fit.densify, first, last)
+
+
 def test_training_calls_tile_the_horizon_and_reload_restarts_each():
     s = episode_schedule(4, 8, 1, 25, 2000)
     calls = training_calls(s)

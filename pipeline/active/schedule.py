@@ -94,7 +94,7 @@ def events_before_evaluations(fit: FitConfig, schedule: Schedule, within: int,
     measures before the model has settled."""
     out = []
     for first, last in training_calls(schedule, reload):
-        for step in range(max(first, last - within + 1), last + 1):
+        for step in fit.density_event_steps(max(first, last - within + 1), last):
             out += [HeldEvent(step, kind, last) for kind in fit.density_events(step)]
     return out
 
