@@ -497,3 +497,13 @@ def test_a_grid_beside_an_outside_result_reads_the_sweeps_renders_and_skips_the_
     frame = pd.DataFrame([sweep_row, outside_row])
     assert grid_images(None, frame, "renders") == {"gopre": [renders / "test_0001.png"], "mean_colour": []}
     assert grid_images(tmp_path, frame.drop(columns="sweep_dir"), "renders")["gopre"] == [renders / "test_0001.png"]
+
+
+def test_a_grid_of_records_without_a_setting_column_is_one_column_per_method(tmp_path):
+    """Records written before settings existed (no ``setting`` column), from two sweeps: the
+    grid is drawn, not a KeyError."""
+    from pipeline.report.report import grid_images
+    rows = [{**final_row(m, "d", "bonsai", 0, 20.0, 0.5), "config_hash": m, "sweep": sweep}
+            for m, sweep in (("gopre", "a"), ("random", "b"))]
+    frame = pd.DataFrame(rows).drop(columns="setting", errors="ignore")
+    assert set(grid_images(tmp_path, frame, "renders")) == {"gopre", "random"}

@@ -285,9 +285,9 @@ def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
     folder (``sweep_dir`` column of combined records), else under ``sweep_dir``."""
     if final.empty or (sweep_dir is None and "sweep_dir" not in final):
         return {}
+    final = final.assign(setting=final["setting"].fillna("") if "setting" in final else "")
     compared = "sweep" in final and final["sweep"].nunique() > 1 and final["setting"].nunique() > 1
     part = final[final["scene"] == (scene if scene is not None else final["scene"].iloc[0])]
-    part = part.assign(setting=part["setting"].fillna("") if "setting" in part else "")
     part = part[part["seed"] == part["seed"].min()]
     if compared and part["sweep"].nunique() < 2:
         return {}  # a scene only one of the compared sweeps ran: its own report has its grid
