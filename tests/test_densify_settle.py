@@ -109,7 +109,7 @@ def test_events_before_evaluations_lists_what_the_trainer_holds(monkeypatch):
         monkeypatch.undo()
 
 
-def test_density_event_steps_are_the_steps_the_rule_names_in_any_window():
+def test_density_events_between_are_the_events_the_rule_names_in_any_window():
     """The enumeration ``events_before_evaluations`` uses (multiples of the two intervals) against
     every step of the window asked one by one, on random recipes: starts, stops and intervals
     that do not divide each other, windows from step 0 on, the reset on and off."""
@@ -121,8 +121,9 @@ def test_density_event_steps_are_the_steps_the_rule_names_in_any_window():
         fit = FitConfig(iterations=rng.randint(50, 500), densify=densify)
         first = rng.randint(0, 300)
         last = first + rng.randint(0, 200)
-        assert fit.density_event_steps(first, last) == \
-            [s for s in range(max(first, 1), last + 1) if fit.density_events(s)], (fit.densify, first, last)
+        assert fit.density_events_between(first, last) == \
+            [(s, kind) for s in range(max(first, 1), last + 1) for kind in fit.density_events(s)], \
+            (fit.densify, first, last)
 
 
 def test_training_calls_tile_the_horizon_and_reload_restarts_each():

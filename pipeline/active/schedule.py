@@ -94,8 +94,8 @@ def events_before_evaluations(fit: FitConfig, schedule: Schedule, within: int,
     measures before the model has settled."""
     out = []
     for first, last in training_calls(schedule, reload):
-        for step in fit.density_event_steps(max(first, last - within + 1), last):
-            out += [HeldEvent(step, kind, last) for kind in fit.density_events(step)]
+        out += [HeldEvent(step, kind, last)
+                for step, kind in fit.density_events_between(max(first, last - within + 1), last)]
     return out
 
 

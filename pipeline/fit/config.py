@@ -93,15 +93,15 @@ class FitConfig:
             events += ("reset",)
         return events
 
-    def density_event_steps(self, first: int, last: int) -> list[int]:
-        """The steps in ``first..last`` (inclusive) at which ``density_events`` is not empty, in
-        order; only the multiples of the two intervals are asked, so a window of a billion steps
-        costs what its events do."""
+    def density_events_between(self, first: int, last: int) -> list[tuple[int, str]]:
+        """``(step, kind)`` of every density event (``density_events``) in ``first..last``
+        (inclusive), in order; only the multiples of the two intervals are asked, so a window of a
+        billion steps costs what its events do."""
         d = self.densify
         candidates = set()
         for every in (d.interval, d.opacity_reset_interval):  # both >= 1
             candidates.update(range(-(-max(first, 1) // every) * every, last + 1, every))
-        return [step for step in sorted(candidates) if self.density_events(step)]
+        return [(step, kind) for step in sorted(candidates) for kind in self.density_events(step)]
 
     def flat(self) -> dict[str, object]:
         """Every hyperparameter as ``dotted.name -> value`` (what ``with_overrides`` accepts)."""
