@@ -73,8 +73,16 @@ def test_plan_prints_the_schedule_as_run_and_the_events_densify_settle_holds(tmp
     assert "900 steps in all, so the recipe of 240 runs rescaled x3.75" in text
     for line in ("fit.densify.stop = 100 -> 375", "fit.densify.start = 48 -> 180", "fit.densify.interval = 32 -> 120"):
         assert f"    {line}\n" in text
+    assert "  density control: 2 densifications (steps 240 to 360), no periodic opacity resets\n" in text
     assert "densify_settle=150 holds these density events: densify at 360 (140 before the evaluation at 500)\n" in text
     plain = run_plan(f"output_dir={tmp_path}").stdout  # the debug preset as written: 240 steps
     assert "240 steps in all: the recipe runs as written" in plain
     assert ("before an evaluation (+splat.densify_settle=N holds those in the last N steps): "
             "densify at 96 (4 before the evaluation at 100)\n") in plain
+
+
+def test_plan_says_when_an_episode_has_no_density_control(tmp_path):
+    """densify.stop=0 (rescaled to 1, below start): no step densifies, prunes or resets."""
+    text = run_plan(f"output_dir={tmp_path}", "splat.fit.densify.stop=0").stdout
+    assert "  density control: none in the episode (no densification, prune or periodic opacity reset" in text
+    assert "densify at" not in text

@@ -87,6 +87,22 @@ def held_line(cfg: EpisodeConfig, run: FitConfig, schedule: Schedule) -> str:
             f"evaluation (+splat.densify_settle=N holds those in the last N steps): {listed}")
 
 
+def density_line(run: FitConfig, schedule: Schedule, reload: bool) -> str:
+    """How many density events the recipe as run has over the episode's training calls, and at
+    which steps the first and last fall; says plainly when there are none (density control off:
+    the model keeps the Gaussians it starts with)."""
+    events = [(step, kind) for first, last in training_calls(schedule, reload)
+              for step, kind in run.density_events_between(first, last)]
+    if not events:
+        return ("  density control: none in the episode (no densification, prune or periodic opacity "
+                "reset: the model keeps the Gaussians it starts with)")
+    parts = []
+    for kind, name in (("densify", "densifications"), ("reset", "periodic opacity resets")):
+        steps = [step for step, k in events if k == kind]
+        parts.append(f"{len(steps)} {name} (steps {min(steps)} to {max(steps)})" if steps else f"no {name}")
+    return f"  density control: {', '.join(parts)}"
+
+
 def schedule_lines(job: Job, schedule: Schedule) -> list[str]:
     """An episode's schedule in words, then each recipe value the schedule's rescaling changes
     (as written -> as run)."""
@@ -100,6 +116,7 @@ def schedule_lines(job: Job, schedule: Schedule) -> list[str]:
              f"{' (each from scratch: post_selection=reload)' if reload else ''}, evaluating at step "
              f"{', '.join(str(last) for _, last in training_calls(schedule, reload)[:-1])}; then "
              f"{schedule.final_iterations} after the last pick"]
+    lines.append(density_line(run, schedule, reload))
     lines.append(held_line(cfg, run, schedule))
     if run is written:
         lines.append(f"  {schedule.total} steps in all: the recipe runs as written")

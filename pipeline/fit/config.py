@@ -15,7 +15,7 @@ class DensifyConfig:
     """3DGS adaptive density control (clone / split by screen-space gradient, prune)."""
 
     start: int = bounded(500, INT, ge=0)                  # first iteration that densifies
-    stop: int = bounded(15_000, INT, ge=0)                # last iteration that densifies
+    stop: int = bounded(15_000, INT, ge=0)                # last iteration that densifies; 0: none
     interval: int = bounded(100, INT, ge=1)
     grad_threshold: float = bounded(0.0002, FLOAT, gt=0)  # mean NDC-space gradient norm of means2d
     percent_dense: float = bounded(0.01, FLOAT, gt=0)     # clone if max scale <= this * scene extent, else split
