@@ -91,8 +91,8 @@ def density_line(run: FitConfig, schedule: Schedule, reload: bool) -> str:
     """How many density events the recipe as run has over the episode's training calls, and at
     which steps the first and last fall; says plainly when there are none (density control off:
     the model keeps the Gaussians it starts with)."""
-    events = [(step, kind) for first, last in training_calls(schedule, reload)
-              for step, kind in run.density_events_between(first, last)]
+    events = [(e.step, e.kind) for e in events_before_evaluations(run, schedule, schedule.total, reload)]
+    # (a window as long as the episode: every event of every training call)
     if not events:
         return ("  density control: none in the episode (no densification, prune or periodic opacity "
                 "reset: the model keeps the Gaussians it starts with)")
