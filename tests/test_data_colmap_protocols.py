@@ -25,11 +25,14 @@ def bonsai():
 
 def test_bonsai_counts_llff_split_and_rescaled_intrinsics(bonsai):
     assert {k: len(v) for k, v in bonsai.splits.items()} == {"all": 292, "train": 255, "test": 37}
+    # the staged scene as its README describes it (re-staged 2026-12-06): a PINHOLE model at 799x532
+    # (fx 821.934, fy 821.217, cy 266.0), images halved to 399x266, 89,807 points
     cams = bonsai.split("all").cameras
-    assert (cams.width, cams.height) == (400, 266)
-    assert cams.Ks[0, 0, 0].item() == pytest.approx(817.87785045 / 2, rel=1e-5)
-    assert cams.Ks[0, 1, 2].item() == pytest.approx(266.0 / 2 * 266 / 266, rel=1e-5)
-    assert bonsai.points.shape == (87169, 3) and bonsai.split("all").images[0].shape == (266, 400, 3)
+    assert (cams.width, cams.height) == (399, 266)
+    assert cams.Ks[0, 0, 0].item() == pytest.approx(821.934 * 399 / 799, rel=1e-5)
+    assert cams.Ks[0, 1, 1].item() == pytest.approx(821.217 * 266 / 532, rel=1e-5)
+    assert cams.Ks[0, 1, 2].item() == pytest.approx(266.0 * 266 / 532, rel=1e-5)
+    assert bonsai.points.shape == (89807, 3) and bonsai.split("all").images[0].shape == (266, 399, 3)
 
 
 def test_bonsai_points_land_on_their_observations(bonsai):
@@ -40,7 +43,8 @@ def test_bonsai_points_land_on_their_observations(bonsai):
         vm, k = cams.viewmats[index].double(), cams.Ks[index].double()
         p = xyz @ vm[:3, :3].T + vm[:3, 3]
         uv = (p @ k.T)[:, :2] / p[:, 2:]
-        err = (uv - xy * 0.5).norm(dim=1)  # observations are at the model's 800x532
+        model_w, model_h = bonsai.info["model_size"]  # observations are at the model's size
+        err = (uv - xy * torch.tensor([cams.width / model_w, cams.height / model_h], dtype=xy.dtype)).norm(dim=1)
         assert len(err) > 100 and torch.quantile(err, 0.95) < 1.0
 
 

@@ -132,15 +132,38 @@ def test_a_plugin_that_cannot_serve_is_refused_naming_its_entry_point(tmp_path, 
     assert "\n" not in str(err.value)
 
 
-def test_a_plugin_reusing_a_built_in_name_is_refused_before_any_job(tmp_path, monkeypatch):
+def test_a_plugin_reusing_a_built_in_name_refuses_the_launches_that_use_it_and_warns_the_others(
+        tmp_path, monkeypatch, capsys):
     fake_distribution(tmp_path, "shadow", "gopre = shadow_mod:Fake\n",
                       {"shadow_mod": "class Fake:\n    def select(self, ctx, count=1):\n        pass\n"})
     monkeypatch.syspath_prepend(str(tmp_path))
-    with pytest.raises(StrategyError, match=r"^entry point gopre.strategies:gopre = shadow_mod:Fake \(from shadow "
-                                            r"1.0\) reuses the built-in strategy name 'gopre'"):
-        check_plugins()
+    clash = (r"^entry point gopre.strategies:gopre = shadow_mod:Fake \(from shadow 1.0\) reuses the built-in "
+             r"strategy name 'gopre'")
+    with pytest.raises(StrategyError, match=clash):
+        check_plugins({"random", "gopre"})
+    with pytest.raises(StrategyError, match=clash):  # asked for by name: neither is a safe guess
+        resolve_strategy("gopre")
     with pytest.raises(ConfigError, match="reuses the built-in strategy name 'gopre'"):
         expand_jobs(composed([*TINY, "executor=local", "tracking=none", f"output_dir={tmp_path}/o"]))
+    heard = []
+    check_plugins({"random"}, warn=heard.append)
+    check_plugins({"random"}, warn=heard.append)  # once per process
+    assert len(heard) == 1 and "reuses the built-in strategy name 'gopre'" in heard[0]
+    jobs = expand_jobs(composed([*TINY, "executor=local", "tracking=none", f"output_dir={tmp_path}/o",
+                                 "method=[random]"]))
+    assert [j.method for j in jobs] == ["random"] and jobs[0].plugin is None
+
+
+def test_a_method_key_that_is_a_built_in_name_must_run_that_strategy(tmp_path):
+    """`random: {strategy: farthest_view}` would put another method's numbers in the row 'random'."""
+    (tmp_path / "conf" / "method").mkdir(parents=True)
+    (tmp_path / "conf" / "method" / "mine.yaml").write_text("random:\n  strategy: coverage\n")
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", [*TINY, "executor=local", "tracking=none", f"output_dir={tmp_path}/out",
+                                 f"hydra.searchpath=[file://{tmp_path}/conf]", "method=[mine]"])
+    with pytest.raises(ConfigError, match=r"^method.random: the key 'random' is the built-in strategy's name, but its "
+                                          r"strategy is 'coverage'; give the method another key"):
+        expand_jobs(cfg)
 
 
 def test_dotted_paths_and_their_refusals(tmp_path, monkeypatch):

@@ -9,7 +9,8 @@ A method YAML's ``strategy`` is resolved here, once, into a class and its identi
 - a dotted path ``package.module:Class`` (the module importable from the Python path).
 
 A plugin is refused with one line naming its entry point or path when it cannot be imported, is not
-a class, lacks the protocol's ``select`` method, or (as an entry point) reuses a built-in name.
+a class or lacks the protocol's ``select`` method. An entry point that reuses a built-in name refuses
+every launch that asks for that name (neither would be a safe guess) and is warned about otherwise.
 Its identity (the distribution's name and version, and a sha256 of its module's source) is part
 of every job that runs it, so a changed plugin is re-run, never "already finished".
 """
@@ -72,6 +73,9 @@ def resolve_strategy(name: str) -> StrategySource:
         raise StrategyError(f"strategy: expected a name or package.module:Class, got {name!r}")
     built_in = _built_in()
     if name in built_in:
+        clash = shadowing_entry_points().get(name)
+        if clash is not None:  # which of the two would run is not the user's to guess
+            raise StrategyError(clash)
         return StrategySource(name, built_in[name], None)
     if is_dotted_path(name):
         cls = _load(name, f"strategy {name!r}", lambda: _import_path(name))
@@ -87,15 +91,31 @@ def resolve_strategy(name: str) -> StrategySource:
                         f"({ENTRY_POINT_GROUP}): {sorted(points) or 'none'}; or give package.module:Class")
 
 
-def check_plugins() -> None:
-    """Refuse an installed entry point that reuses a built-in name (one line naming it); called
-    before any job starts, so a shadowing plugin never silently loses to the built-in."""
-    built_in = _built_in()
+def shadowing_entry_points() -> dict[str, str]:
+    """Installed entry points that reuse a built-in name: name -> the line that says so."""
+    built_in, out = _built_in(), {}
     for ep in strategy_entry_points().values():
         if ep.name in built_in:
             dist = f" (from {ep.dist.name} {ep.dist.version})" if ep.dist is not None else ""
-            raise StrategyError(f"entry point {ENTRY_POINT_GROUP}:{ep.name} = {ep.value}{dist} reuses the "
-                                f"built-in strategy name {ep.name!r}; rename it in the plugin's pyproject.toml")
+            out[ep.name] = (f"entry point {ENTRY_POINT_GROUP}:{ep.name} = {ep.value}{dist} reuses the "
+                            f"built-in strategy name {ep.name!r}; rename it in the plugin's pyproject.toml")
+    return out
+
+
+_WARNED: set[str] = set()
+
+
+def check_plugins(used: set[str] | frozenset[str] = frozenset(), warn=None) -> None:
+    """An installed entry point that reuses a built-in name refuses the launches that use that name
+    (``used``: the strategies of the launch; one line naming it), so a shadowing plugin never
+    silently loses to the built-in; any other launch goes on, and ``warn`` hears each clash once per
+    process."""
+    for name, line in shadowing_entry_points().items():
+        if name in used:
+            raise StrategyError(line)
+        if warn is not None and line not in _WARNED:
+            _WARNED.add(line)
+            warn(f"warning: {line} (strategy {name!r} is refused until then; this launch does not use it)")
 
 
 def _import_path(path: str):

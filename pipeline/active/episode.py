@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy, scores_any_pose
+from pipeline.acquisition.validation import RoundAsk, check_selection
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
@@ -253,7 +254,10 @@ class Episode:
                                goal_manifold=self.goal_manifold(), on_fisher=self.on_fisher)
         cpu, compiling = time.process_time(), compile_seconds()
         sel = self.strategy.select(ctx, count)
-        rec.selected, rec.scores, rec.candidates = list(sel.chosen), dict(sel.scores), len(remaining)
+        check_selection(RoundAsk(self.cfg.strategy, rec.round, count, tuple(remaining), tuple(self.taken)),
+                        list(sel.chosen), dict(sel.scores))
+        rec.selected, rec.candidates = [int(c) for c in sel.chosen], len(remaining)
+        rec.scores = {int(k): float(v) for k, v in sel.scores.items()}
         search_seconds = self.search_pose(ctx, rec) if self.world is not None else 0.0
         compiled = compile_seconds() - compiling  # one-time: kept apart from the selection's cost
         rec.compile_seconds = round(compiled, 3)

@@ -18,10 +18,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.acquisition import POSE_SCORING, make_strategy, scores_any_pose
+from pipeline.acquisition import POSE_SCORING, REGISTRY as BUILT_IN, make_strategy, scores_any_pose
 from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve_strategy
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
+from pipeline.data.fingerprint import FileDigests, scene_fingerprint
+from pipeline.data.images import DataError
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.bounds import BoundsError, under
 from pipeline.experiment.layout import SweepFolder
@@ -61,6 +63,30 @@ def config_hash(job: dict | Job) -> str:
     plain = job.to_dict() if isinstance(job, Job) else job
     core = {k: v for k, v in plain.items() if k not in NOT_HASHED}
     return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def data_fingerprint(scene_path: str, generate: dict | None, masks: bool, digests: FileDigests) -> str:
+    """The scene's data identity for a job's hash (``pipeline.data.fingerprint``): the digest of its
+    files; "" for the generated scene, whose generator options the hash holds already (so generated
+    sweeps keep their hashes); ``MISSING_DATA`` when the folder cannot be read (the pre-flight check
+    then names the problem)."""
+    if generate is not None:  # its options are in the hash already (Job.data_identity names them)
+        return ""
+    try:
+        return scene_fingerprint(scene_path, masks, digests).short
+    except (DataError, OSError):
+        return MISSING_DATA
+
+
+MISSING_DATA = "unreadable"
+
+
+def without_data_identity(job: Job) -> str:
+    """The hash the same job had before data identity (no fingerprint in it): what a sweep folder
+    launched before it recorded."""
+    plain = job.to_dict()
+    plain.pop("data_fingerprint", None)
+    return config_hash(plain)
 
 
 def _container(cfg: DictConfig, key: str):
@@ -157,7 +183,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
     except ValueError as err:
         raise ConfigError(f"splat.{err}") from None
     plugins = strategy_plugins(methods)
-    jobs = []
+    jobs, digests, fingerprints = [], FileDigests(), {}
     output_dir = Path(str(cfg.output_dir)).absolute()  # job folders: the same wherever the job runs
     tracked = (_container(cfg, "tracking") or {}).get("kind") == "mlflow"
     for dname, dset in datasets.items():
@@ -190,6 +216,11 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                 job["masks"] = True
             if plugins[mname] is not None:  # the plugin's code is part of what the job computes
                 job["plugin"] = plugins[mname]
+            data_key = (job["scene_path"], json.dumps(job["generate"], sort_keys=True), bool(job.get("masks")))
+            if data_key not in fingerprints:  # each scene's files hashed once per launch (and cached on disk)
+                fingerprints[data_key] = data_fingerprint(job["scene_path"], job["generate"], data_key[2], digests)
+            if fingerprints[data_key]:  # absent for the generated scene: its hash as before
+                job["data_fingerprint"] = fingerprints[data_key]
             job["config_hash"] = config_hash(job)
             job["execution"] = {"threads": int(job_cfg["threads"]), "device": str(job_cfg["device"]),
                                 "retries": int(job_cfg["retries"]),
@@ -203,6 +234,7 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
             typed = Job.from_dict(job)
             validate_job(typed)
             jobs.append(typed)
+    digests.save()
     return jobs
 
 
@@ -210,21 +242,30 @@ def strategy_plugins(methods: dict) -> dict[str, dict | None]:
     """Each method's plugin identity (None for a built-in strategy), every strategy resolved once
     before any job is built: an unknown name, a plugin that cannot load, lacks ``select`` or
     reuses a built-in name is a config error naming the method and the entry point or path."""
-    try:
-        check_plugins()
-    except StrategyError as err:
-        raise ConfigError(str(err)) from None
-    out = {}
     for mname, method in methods.items():
         if not isinstance(method, dict) or "strategy" not in method:
             raise ConfigError(f"method.{mname}: missing key 'strategy' (a built-in name, an installed "
                               "plugin's name or package.module:Class)")
+        if mname in BUILT_IN and method["strategy"] != mname:  # the row would say 'random' and be another method
+            raise ConfigError(f"method.{mname}: the key {mname!r} is the built-in strategy's name, but its strategy "
+                              f"is {method['strategy']!r}; give the method another key (e.g. {mname}_variant)")
+    try:
+        check_plugins({str(m["strategy"]) for m in methods.values()}, warn=_warn)
+    except StrategyError as err:
+        raise ConfigError(str(err)) from None
+    out = {}
+    for mname, method in methods.items():
         try:
             source = resolve_strategy(method["strategy"])
         except StrategyError as err:
             raise ConfigError(f"method.{mname}: {err}") from None
         out[mname] = source.plugin.to_dict() if source.plugin is not None else None
     return out
+
+
+def _warn(line: str) -> None:
+    from pipeline.experiment.console import console
+    console().warning(line)
 
 
 def episode_config(job: Job) -> EpisodeConfig:

@@ -23,10 +23,12 @@ from pipeline.active import run_episode
 from pipeline.active.episode import uniform_subset, views_schedule
 from pipeline.data.protocols import build_protocol
 from pipeline.active.uncertainty import run_uncertainty_experiment
+from pipeline.data.fingerprint import scene_fingerprint
+from pipeline.data.images import DataError
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
-from pipeline.experiment.build import uncertainty_config
+from pipeline.experiment.build import MISSING_DATA, uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress
@@ -198,12 +200,24 @@ def run_job(job: Job, scene: Scene | None = None, report: Report | None = None) 
     folder = Path(ex.job_dir)
     folder.mkdir(parents=True, exist_ok=True)
     if scene is None:
+        check_data_identity(job)
         scene = load_scene(job.scene_path, width=job.episode.fit.image_width, masks=job.masks)
     start = time.perf_counter()
     runner = run_uncertainty_job if job.kind == "uncertainty" else run_episode_job
     outcome = runner(job, scene, folder, report)
     outcome["seconds"] = round(time.perf_counter() - start, 2)
     return outcome
+
+
+def check_data_identity(job: Job) -> None:
+    """A node that reads the scene itself must hold the data the driver fingerprinted (the same
+    bytes, wherever mounted): else one DataError naming the folder and both fingerprints (not retried)."""
+    if job.generate is not None or not job.data_fingerprint or job.data_fingerprint == MISSING_DATA:
+        return
+    here = scene_fingerprint(job.scene_path, job.masks).short
+    if here != job.data_fingerprint:
+        raise DataError(f"{job.scene_path}: the scene's data on this node has fingerprint {here}, the driver's "
+                        f"has {job.data_fingerprint}: another copy of the data (sync the folder on every node)")
 
 
 def stop_request(err: BaseException) -> BaseException | None:

@@ -15,6 +15,7 @@ from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import planned_schedule
 from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit, training_calls
 from pipeline.data.readers import traits_of
+from pipeline.experiment.data_changes import data_changes
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.spec import Job
 from pipeline.fit.config import FitConfig
@@ -25,6 +26,7 @@ class PlannedJob:
     job: Job
     finished: bool
     estimate_s: float | None  # from finished jobs of the same kind; None when there are none
+    data_change: str | None = None  # the scene's data changed since its job finished here (the line that says so)
 
 
 def _durations(records: pd.DataFrame) -> pd.DataFrame:
@@ -152,7 +154,9 @@ def plan_jobs(jobs: list[Job], output_dir: Path) -> list[PlannedJob]:
     records = RecordsFile(output_dir)
     done = records.finished_hashes()
     durations = _durations(records.frame)
-    return [PlannedJob(j, j.config_hash in done, estimate(j, durations)) for j in jobs]
+    changed = {(c.dataset, c.scene): c.line() for c in data_changes(jobs, records.frame)}
+    return [PlannedJob(j, j.config_hash in done, estimate(j, durations), changed.get((j.dataset, j.scene)))
+            for j in jobs]
 
 
 def slots(executor: dict, jobs: list[Job]) -> int:
@@ -180,7 +184,8 @@ def plan_text(name: str, planned: list[PlannedJob], parallel: int, warnings: lis
         j = p.job
         est = "-" if p.finished else (format_duration(p.estimate_s) if p.estimate_s is not None else "unknown")
         rows.append([str(j.index), j.dataset, j.scene, j.method, str(j.seed),
-                     j.setting or "-", j.config_hash, "finished" if p.finished else "to run", est])
+                     j.setting or "-", j.config_hash,
+                     "finished" if p.finished else "to run (data changed)" if p.data_change else "to run", est])
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [header] + rows]
     todo = [p for p in planned if not p.finished]
@@ -193,4 +198,5 @@ def plan_text(name: str, planned: list[PlannedJob], parallel: int, warnings: lis
     elif todo:
         summary += "; no finished job of the same kind to estimate the duration from"
     notes = [f"warning: {w}" for w in warnings]
+    notes += sorted({p.data_change for p in planned if p.data_change and not p.finished})
     return "\n".join(lines + [""] + notes + [summary, "nothing was started (plan=true)"])

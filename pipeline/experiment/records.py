@@ -12,7 +12,8 @@ Rows, by ``kind``:
 - ``ause``: one per uncertainty method of an uncertainty job.
 Identifying columns on every row: sweep, config_hash, run_id, status, dataset, scene, method,
 strategy, protocol, seed, setting (the sweep-axis values as ``key=value, ...``), axes (JSON),
-code_version (the code that computed the job, ``provenance.code_version``).
+code_version (the code that computed the job, ``provenance.code_version``), data_fingerprint (the
+scene's data identity, ``pipeline.data.fingerprint``; empty for a job recorded before it).
 The file is rewritten atomically after every job, so a killed sweep loses no finished job.
 """
 
@@ -38,6 +39,7 @@ def identity(job: Job, outcome: JobOutcome, run_id: str | None) -> dict:
             "scene": job.scene, "method": job.method, "strategy": job.strategy,
             "protocol": job.protocol["kind"], "seed": job.seed, "setting": job.setting,
             "axes": json.dumps(job.axes, sort_keys=True), "code_version": job.code_version,
+            "data_fingerprint": job.data_identity,
             "world": job.world["kind"] if job.world else "dataset",  # where a view off the pool comes from
             **plugin_columns(job)}
 
@@ -154,6 +156,15 @@ class RecordsFile:
         hashes = {r["config_hash"] for r in rows}
         kept = self.frame[~self.frame["config_hash"].isin(hashes)] if not self.frame.empty else self.frame
         self.frame = pd.concat([kept, pd.DataFrame(rows)], ignore_index=True)
+        self.write()
+
+    def supersede(self, hashes: set[str]) -> None:
+        """Move the rows of these jobs to ``records_superseded.parquet`` (``data_changes``)."""
+        from pipeline.experiment.data_changes import supersede
+        self.frame = supersede(self.path.parent, self.frame, hashes)
+        self.write()
+
+    def write(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
         self.frame.to_parquet(tmp, index=False)
@@ -204,7 +215,8 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "scene": tags.get("scene"), "method": tags.get("method"), "strategy": tags.get("strategy"),
             "protocol": tags.get("protocol"), "seed": int(tags.get("seed", 0)),
             "setting": tags.get("setting", ""), "axes": params.get("axes", "{}"),
-            "code_version": tags.get("code_version"), "world": params.get("world.kind", "dataset"),
+            "code_version": tags.get("code_version"), "data_fingerprint": tags.get("data_fingerprint"),
+            "world": params.get("world.kind", "dataset"),
             "job_index": int(tags["job_index"]) if "job_index" in tags else None}
     version = int(tags.get("metrics_version", 1))  # version 1: final_ssim was scikit-image's
     ssim, ssim_skimage = ((metrics.get("final_ssim"), metrics.get("final_ssim_skimage")) if version >= 2

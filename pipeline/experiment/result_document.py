@@ -25,11 +25,11 @@ def benchmark_key(job: Job) -> dict:
             "setting": job.setting}
 
 
-def views_block(scene: Scene, views: ProtocolViews, width: int | None) -> dict:
+def views_block(scene: Scene, views: ProtocolViews, width: int | None, data_fingerprint: str = "") -> dict:
     """What a method must use: splits, initial views, pool, test views with the sha256 of each
-    ground-truth image file, the budget and the working width."""
+    ground-truth image file, the budget, the working width and the scene's data fingerprint."""
     test_paths = scene.split(views.test_split).images.paths
-    return {"pool_split": views.pool_split, "test_split": views.test_split,
+    return {**({"data_fingerprint": data_fingerprint} if data_fingerprint else {}),"pool_split": views.pool_split, "test_split": views.test_split,
             "initial_ids": list(views.initial_ids), "pool_ids": list(views.pool_ids),
             "probe_ids": list(views.probe_ids), "test_ids": list(views.test_ids), "budget": int(views.budget),
             "image_width": width,
@@ -54,7 +54,7 @@ def benchmark_entry(job: Job, scene: Scene, cfg: EpisodeConfig) -> dict:
     rounds = [{"round": k, "num_views": int(n), "picks": int(min(cfg.views_per_round, views.budget - n)),
                "probes": probes_of_round(cfg.seed, k, views)} for k, n in enumerate(schedule.round_views)]
     manifold = cfg.protocol.manifold if cfg.protocol.kind == "goal" else cfg.protocol.probe_manifold
-    return {"benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width),
+    return {"benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width, job.data_identity or ""),
             "goal_manifold": None if manifold is None else {"up": list(views.up), **manifold},
             "views_per_round": int(cfg.views_per_round), "pool_keep_fraction": float(cfg.pool_keep_fraction),
             "rounds": rounds}
@@ -82,7 +82,7 @@ def result_document(job: Job, scene: Scene, cfg: EpisodeConfig, result: EpisodeR
     return {"schema": RESULT_SCHEMA, "schema_version": SCHEMA_VERSION,
             "method": {"name": job.method, "strategy": job.strategy, "options": dict(job.options),
                        "plugin": job.plugin},
-            "benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width),
+            "benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width, job.data_identity or ""),
             "rounds": rounds,
             "final": {"num_views": result.rounds[-1].num_views, "psnr": final.psnr, "ssim": final.ssim,
                       "lpips": final.lpips, "per_image": per_image},

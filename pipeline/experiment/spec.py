@@ -58,14 +58,18 @@ class Job:
     # version, source_sha256), part of the hash so a changed plugin is re-run; None for a built-in
     plugin: dict | None = None
     masks: bool = False              # the dataset's masks: training and evaluation ignore masked-out pixels
+    # the scene's data identity (``pipeline.data.fingerprint``): part of the hash, so changed data is
+    # re-run; "" for the generated scene (its generator's options, in the hash already, make its files)
+    # and for a job made before data identity (its hash is the old one)
+    data_fingerprint: str = ""
 
     def to_dict(self) -> dict:
         """The plain form, key for key as ``jobs.json`` has always held it (``world`` only when a
         job captures off the pool, so a pool job's hash is what it always was)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["execution"] = asdict(self.execution) if self.execution is not None else None
-        for optional in ("world", "plugin", "masks"):  # absent when unused: older jobs hash as before
-            if out[optional] in (None, False):
+        for optional in ("world", "plugin", "masks", "data_fingerprint"):  # absent when unused: older jobs hash as before
+            if out[optional] in (None, False, ""):
                 del out[optional]
         return out
 
@@ -91,6 +95,17 @@ class Job:
             from pipeline.experiment.build import episode_config  # build makes Jobs: import when used
             cached = self.__dict__["_episode"] = episode_config(self)
         return cached
+
+    @property
+    def data_identity(self) -> str | None:
+        """What the records, tags and result files name as the job's data: the fingerprint, the
+        generated scene's options digest, or None (a job made before data identity)."""
+        if self.data_fingerprint:
+            return self.data_fingerprint
+        if self.generate is not None:
+            from pipeline.data.fingerprint import generated_fingerprint
+            return generated_fingerprint(self.generate)
+        return None
 
     @property
     def label(self) -> str:

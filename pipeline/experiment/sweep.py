@@ -20,6 +20,7 @@ from pipeline.data.scene import Scene
 from pipeline.data.synthetic import at_fraction, generate
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.console import console, sweep_log
+from pipeline.experiment.data_changes import SUPERSEDED, data_changes
 from pipeline.experiment.executors import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.layout import SweepFolder
@@ -333,6 +334,7 @@ class SweepRun:
         """Write the resolved config, validate what is left to run, open the tracker, decide the
         skip list and the execution order; the scenes the jobs read."""
         self.folder.config_file.write_text(json.dumps(self.resolved, indent=1, default=str))
+        self.supersede_changed_data()
         recorded = self.records.finished_hashes()
         scenes = validate_sweep([j for j in self.jobs if j.config_hash not in recorded],
                                 bool(self.cfg.get("validate_images", True)))
@@ -353,6 +355,15 @@ class SweepRun:
         self.executor = make_executor(self.resolved["executor"], self.output_dir)
         no_device_here(self.executor, self.todo)
         return scenes
+
+    def supersede_changed_data(self) -> None:
+        """Name each scene whose data changed since its jobs finished here, and move those records
+        aside (``data_changes``): the jobs re-run under their new hashes."""
+        changes = data_changes(self.jobs, self.records.frame)
+        for change in changes:
+            LOG.info(f"[{self.name}] {change.line()}; their old records moved to {SUPERSEDED}")
+        if changes:
+            self.records.supersede(set().union(*(c.hashes for c in changes)))
 
     def on_done(self, job: Job, outcome: JobOutcome) -> None:
         with critical():  # a stop signal waits until the job is recorded and tracked

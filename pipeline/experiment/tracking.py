@@ -30,7 +30,8 @@ from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
 
-TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version")
+TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version",
+        "data_fingerprint")
 
 
 def flatten(data: dict, prefix: str = "") -> dict[str, str]:
@@ -223,6 +224,7 @@ class MlflowTracker:
         """A new child run for ``job``, with its tags and params, starting when the job started
         (``started``, seconds since the epoch; None: now)."""
         tags = {k: str(getattr(job, k)) for k in TAGS}
+        tags["data_fingerprint"] = str(job.data_identity or "")
         tags.update({"protocol": job.protocol["kind"], "mlflow.parentRunId": self.parent or "",
                      "output_dir": self.output_dir})
         tags.update(plugin_tags(job))

@@ -84,6 +84,10 @@ def describe(key: tuple) -> str:
 def check_views(result: dict, definition_views: dict, source: str, against: str) -> None:
     """Refuse a result whose views differ from the definition's, naming the first field."""
     views = result["views"]
+    mine, theirs = views.get("data_fingerprint"), definition_views.get("data_fingerprint")
+    if mine and theirs and mine != theirs:
+        raise DocumentError(f"{source}: views.data_fingerprint is {mine}, {against} has {theirs}: computed on "
+                            "other data (the scene's files changed)")
     for name in CHECKED_VIEW_FIELDS:
         mine, theirs = views.get(name), definition_views.get(name)
         if name == "test_image_sha256":
@@ -122,7 +126,8 @@ def result_rows(doc: dict, source: str, index: int) -> list[dict]:
             "job_kind": "episode", "dataset": b["dataset"], "scene": b["scene"], "method": method["name"],
             "strategy": method.get("strategy") or method["name"], "protocol": b["protocol"],
             "seed": int(b["seed"]), "setting": b.get("setting") or "", "axes": "{}",
-            "code_version": doc["code_version"], "world": "dataset", "result_file": str(source),
+            "code_version": doc["code_version"], "data_fingerprint": doc["views"].get("data_fingerprint"),
+            "world": "dataset", "result_file": str(source),
             **({"plugin": plugin.get("reference"), "plugin_distribution": plugin.get("distribution"),
                 "plugin_version": plugin.get("version"), "plugin_sha256": plugin.get("source_sha256")}
                if plugin else {})}
