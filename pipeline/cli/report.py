@@ -89,6 +89,10 @@ def main(argv=None) -> int:
                         help="curves only: no figure made of the scenes' images (qualitative grids with their "
                              "ground truth, uncertainty maps), for data whose license keeps its pictures out "
                              "of a published report")
+    parser.add_argument("--allow-mixed", action="store_true",
+                        help="report a row whose episodes come from several code versions, plugin versions or "
+                             "data fingerprints (refused otherwise, naming the two); each row's identities are "
+                             "listed in report.md")
     parser.add_argument("--paper-only", action="store_true",
                         help="with --paper: write only paper.md into --out (no tables, figures, run list)")
     args = parser.parse_args(argv)
@@ -120,6 +124,8 @@ def main(argv=None) -> int:
             frame = frame[frame["seed"].isin(seeds)]
             if frame.empty:
                 raise ValueError(f"no records for seeds {sorted(seeds)}")
+        from pipeline.report.identity import check_rows
+        check_rows(frame, args.allow_mixed)
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
         problem = unwritable(out, "--out", folder=True)
         if problem:
@@ -130,7 +136,7 @@ def main(argv=None) -> int:
             Path(out).mkdir(parents=True, exist_ok=True)
         else:
             summary = make_report(source, out, frame, args.reference, baseline_setting(frame, args),
-                                  images=not args.no_images)
+                                  images=not args.no_images, allow_mixed=args.allow_mixed)
         if args.paper is not None:
             from pipeline.report.paper import paper_report
             beside = paper_report(frame, None if args.paper == "auto" else args.paper)

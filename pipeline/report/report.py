@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.report import falls, figures, search
+from pipeline.report.identity import check_rows, identity_markdown
 from pipeline.report.rows import finished
 from pipeline.report.stats import default_reference, paired_comparisons, with_curve_area
 from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
@@ -377,7 +378,8 @@ def falls_section(frame: pd.DataFrame, out: Path) -> list[str]:
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
     final = frame[frame["kind"] == "final"]
     cols = [c for c in ("sweep", "method", "dataset", "scene", "seed", "setting", "config_hash", "run_id",
-                        "status", "psnr", "degraded", "attempts", "code_version") if c in final]
+                        "status", "psnr", "degraded", "attempts", "code_version", "data_fingerprint",
+                        "plugin_version", "plugin_sha256") if c in final]
     return final[cols].sort_values(["method", "dataset", "scene", "seed"]).reset_index(drop=True)
 
 
@@ -402,13 +404,15 @@ def remove_stale_figures(fig_dir: Path, made: dict) -> list[str]:
 
 def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None = None,
                 reference: str | None = None, baseline_setting: str | None = None,
-                images: bool = True) -> dict:
+                images: bool = True, allow_mixed: bool = False) -> dict:
     """Write report.md, tables (.md, .tex), figures/, falls.csv and runs.csv into ``out``; returns
     a summary. ``reference``: the method the paired comparisons are against (default gopre when
     present); ``baseline_setting``: the setting each method's others are paired against;
-    ``images=False``: no figure of the scenes' images (``make_figures``)."""
+    ``images=False``: no figure of the scenes' images (``make_figures``); ``allow_mixed``: report rows
+    that average several code versions, plugins or data (``report.identity``) instead of refusing."""
     sweep_dir = Path(source) if Path(source).is_dir() else None
     frame = load_records(source) if frame is None else in_config_order(frame)
+    check_rows(frame, allow_mixed)  # a row averages one method on one data, or the report says no
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sweeps = [str(name) for name in dict.fromkeys(frame["sweep"])]
@@ -424,7 +428,7 @@ def make_report(source: str | Path, out: str | Path, frame: pd.DataFrame | None 
     runs.to_csv(out / "runs.csv", index=False)
     failed = runs[runs["status"] != "FINISHED"]
     seeds = sorted(set(runs["seed"]))
-    lines = [f"# Report: {title}", "", markdown, *falls_section(frame, out),
+    lines = [f"# Report: {title}", "", identity_markdown(frame), markdown, *falls_section(frame, out),
              *search_section(frame, sweep_dir, out, made), "## Figures", ""]
     if "psnr_vs_views.png" in made:
         lines += ["PSNR vs views averages the curve's test views (a fixed subset, "
