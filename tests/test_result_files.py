@@ -141,6 +141,46 @@ def test_a_result_that_does_not_match_is_refused_naming_the_field(sweep, externa
     assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
 
 
+def _duplicate_pick(d):
+    picked = next(r for r in d["rounds"] if r["selected"])
+    later = next(r for r in d["rounds"][d["rounds"].index(picked) + 1:] if r["selected"])
+    later["selected"][0] = picked["selected"][0]
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["final"].update(psnr=40.0),
+     r"final.psnr is 40.0, the mean of final.per_image's psnr is \d+\.\d{4} \(tolerance 0.01 dB\)"),
+    (lambda d: d["final"].update(ssim=0.99) if d["final"].get("ssim") is not None else d["final"].update(
+        ssim=0.99, per_image=[{**p, "ssim": 0.5} for p in d["final"]["per_image"]]),
+     r"final.ssim is 0.99, the mean of final.per_image's ssim is"),
+    (lambda d: d["final"].update(num_views=d["final"]["num_views"] + 1), r"final.num_views is \d+, the rounds took \d+ views"),
+    (lambda d: d["views"].update(image_width=d["views"]["image_width"] * 2),
+     r"views.image_width is \d+, .* has \d+: scored at another resolution"),
+    (_duplicate_pick, r"rounds\[\d+\].selected takes view\(s\) \[\d+\] already taken or twice"),
+    (lambda d: d["rounds"][1].update(num_views=d["rounds"][1]["num_views"] + 1),
+     r"rounds\[1\].num_views is \d+, but \d+ views were taken by then"),
+])
+def test_a_result_that_contradicts_itself_is_refused_naming_the_field(sweep, external, tmp_path, edit, message):
+    """The headline must be what the per-image values say, and the rounds what they took."""
+    _, bench = sweep
+    path = changed(external, tmp_path, edit)
+    with pytest.raises(DocumentError, match=message) as err:
+        external_rows([str(path)], [str(bench)], [], set())
+    assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
+
+
+def test_a_result_named_like_a_sweep_method_but_another_one_is_refused(sweep, external, tmp_path, capsys):
+    """Named `gopre` it would merge into the sweep's reference row."""
+    out, bench = sweep
+    path = changed(external, tmp_path, lambda d: d["method"].update(name="gopre"))
+    assert report_main([str(out), "--results", str(path), "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith(f"gopre-report: error: {path}: method.name 'gopre' is a method of the "
+                                              "reported sweep, but this result is another identity")
+    # against the definition alone there is no sweep row to merge into: accepted under that name
+    assert report_main(["--results", str(path), "--benchmark", str(bench), "--out", str(tmp_path / "b")]) == 0
+
+
 def test_the_report_command_refuses_with_one_line(sweep, external, tmp_path, capsys):
     out, _ = sweep
     path = changed(external, tmp_path, lambda d: d["views"].update(budget=9))

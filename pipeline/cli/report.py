@@ -33,11 +33,11 @@ def with_results(frame, patterns: list[str], benchmarks: list[str], sweeps: list
     """``frame`` (or nothing) with the accepted ``--results`` appended as records rows."""
     import pandas as pd
 
-    from pipeline.report.external import external_rows
+    from pipeline.report.external import external_rows, method_identities
     from pipeline.report.report import in_config_order, with_metrics_version
     known = set() if frame is None else set(frame["config_hash"].dropna())
     first = 0 if frame is None or "job_index" not in frame else int(frame["job_index"].max()) + 1
-    extra = external_rows(patterns, benchmarks, sweeps, known, first)
+    extra = external_rows(patterns, benchmarks, sweeps, known, first, method_identities(frame))
     if extra.empty:
         if frame is None:
             raise ValueError("--results: every result given is already in the reported sweep")

@@ -99,6 +99,10 @@ def check_views(result: dict, definition_views: dict, source: str, against: str)
                                     "ground-truth images")
         elif mine != theirs:
             raise DocumentError(f"{source}: views.{name} is {_short(mine)}, {against} has {_short(theirs)}")
+    mine, theirs = views.get("image_width"), definition_views.get("image_width")
+    if mine is not None and theirs is not None and int(mine) != int(theirs):
+        raise DocumentError(f"{source}: views.image_width is {mine}, {against} has {theirs}: scored at another "
+                            "resolution")
     taken = list(views["initial_ids"]) + [i for r in result["rounds"] for i in r["selected"]]
     allowed = set(views["initial_ids"]) | set(views["pool_ids"])
     outside = [i for i in taken if i not in allowed]
@@ -110,6 +114,46 @@ def check_views(result: dict, definition_views: dict, source: str, against: str)
     if tested != sorted(views["test_ids"]):
         raise DocumentError(f"{source}: final.per_image covers test views {_short(tested)}, the benchmark's are "
                             f"{_short(sorted(views['test_ids']))}")
+
+
+# how far a result's headline may be from the mean of its per-image values (rounding, float32 sums)
+PSNR_TOLERANCE_DB = 0.01
+SSIM_TOLERANCE = 0.001
+
+
+def check_claims(result: dict, source: str) -> None:
+    """A result agrees with itself, whatever benchmark it names: ``final.psnr`` (and ``ssim``) is the
+    mean of ``final.per_image`` to ``PSNR_TOLERANCE_DB`` (``SSIM_TOLERANCE``), as gopre's own results
+    are; the rounds count the views they train on (the first round the initial views, each next one
+    the previous plus its picks, ``final.num_views`` all of them); no view is taken twice (a pick of an
+    initial view, of an earlier pick, or twice in one round). DocumentError names file and field."""
+    final, per_image = result["final"], result["final"]["per_image"]
+    psnr = sum(float(p["psnr"]) for p in per_image) / len(per_image)
+    if abs(float(final["psnr"]) - psnr) > PSNR_TOLERANCE_DB:
+        raise DocumentError(f"{source}: final.psnr is {final['psnr']}, the mean of final.per_image's psnr is "
+                            f"{psnr:.4f} (tolerance {PSNR_TOLERANCE_DB} dB)")
+    ssims = [p.get("ssim") for p in per_image]
+    if final.get("ssim") is not None and all(v is not None for v in ssims):
+        ssim = sum(float(v) for v in ssims) / len(ssims)
+        if abs(float(final["ssim"]) - ssim) > SSIM_TOLERANCE:
+            raise DocumentError(f"{source}: final.ssim is {final['ssim']}, the mean of final.per_image's ssim is "
+                                f"{ssim:.4f} (tolerance {SSIM_TOLERANCE})")
+    tested = [int(p["test_id"]) for p in per_image]
+    if len(set(tested)) != len(tested):
+        raise DocumentError(f"{source}: final.per_image lists test view(s) "
+                            f"{sorted({t for t in tested if tested.count(t) > 1})} more than once")
+    seen, count = list(result["views"]["initial_ids"]), len(result["views"]["initial_ids"])
+    for k, r in enumerate(result["rounds"]):
+        if int(r["num_views"]) != count:
+            raise DocumentError(f"{source}: rounds[{k}].num_views is {r['num_views']}, but {count} views were "
+                                "taken by then (the initial views and the picks of the rounds before)")
+        again = sorted({i for i in r["selected"] if i in seen or r["selected"].count(i) > 1})
+        if again:
+            raise DocumentError(f"{source}: rounds[{k}].selected takes view(s) {again} already taken or twice")
+        seen += list(r["selected"])
+        count += len(r["selected"])
+    if int(final["num_views"]) != count:
+        raise DocumentError(f"{source}: final.num_views is {final['num_views']}, the rounds took {count} views")
 
 
 def _short(value) -> str:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.interchange.documents import (RESULT_SCHEMA, DocumentError, check_views, describe, key_of,
-                                            read, result_rows)
+from pipeline.interchange.documents import (RESULT_SCHEMA, DocumentError, check_claims, check_views, describe,
+                                            key_of, read, result_rows)
 from pipeline.interchange.layout import SweepFolder
 
 
@@ -62,10 +62,47 @@ def references(benchmarks: list[str], sweeps: list[Path]) -> dict[tuple, tuple[d
     return out
 
 
+def method_identities(frame: pd.DataFrame | None) -> dict[str, set[tuple]]:
+    """The reported sweeps' methods and the identities their rows carry: (strategy, code version,
+    plugin source sha256 or None)."""
+    if frame is None or frame.empty:
+        return {}
+    final = frame[frame["kind"] == "final"]
+    plugins = final["plugin_sha256"] if "plugin_sha256" in final else pd.Series(None, index=final.index)
+    codes = final["code_version"] if "code_version" in final else pd.Series(None, index=final.index)
+    out: dict[str, set[tuple]] = {}
+    for method, strategy, code, plugin in zip(final["method"], final["strategy"], codes, plugins):
+        out.setdefault(method, set()).add((strategy, code if isinstance(code, str) else None,
+                                           plugin if isinstance(plugin, str) else None))
+    return out
+
+
+def result_identity(doc: dict) -> tuple:
+    method = doc["method"]
+    return (method.get("strategy") or method["name"], doc["code_version"],
+            (method.get("plugin") or {}).get("source_sha256"))
+
+
+def check_name(doc: dict, source: str, methods: dict[str, set[tuple]]) -> None:
+    """A result named like one of the sweep's methods must be that method (same strategy, code and
+    plugin): else its numbers would be averaged into that method's row."""
+    name = doc["method"]["name"]
+    if name in methods and result_identity(doc) not in methods[name]:
+        strategy, code, plugin = result_identity(doc)
+        theirs = sorted(methods[name], key=str)[0]
+        raise DocumentError(f"{source}: method.name {name!r} is a method of the reported sweep, but this result is "
+                            f"another identity (strategy {strategy!r}, code {code!r}"
+                            + (f", plugin {plugin[:12]}" if plugin else "")
+                            + f"; the sweep's: strategy {theirs[0]!r}, code {theirs[1]!r}): give it its own name")
+
+
 def external_rows(patterns: list[str], benchmarks: list[str], sweeps: list[Path],
-                  known_hashes: set[str], first_index: int = 0) -> pd.DataFrame:
+                  known_hashes: set[str], first_index: int = 0,
+                  methods: dict[str, set[tuple]] | None = None) -> pd.DataFrame:
     """The accepted results as records rows; results already in the sweep (same config hash)
-    are left out. DocumentError names the file and field of the first refused result."""
+    are left out. Each is checked against itself (``check_claims``), against the sweep's method
+    names (``check_name``: ``methods`` from ``method_identities``) and against the benchmark's views;
+    DocumentError names the file and field of the first refused result."""
     refs = references(benchmarks, sweeps)
     rows = []
     for k, path in enumerate(result_files(patterns)):
@@ -78,5 +115,7 @@ def external_rows(patterns: list[str], benchmarks: list[str], sweeps: list[Path]
                                 "(gopre-data benchmark PRESET --out FILE) or the sweep that ran it")
         views, where = refs[key]
         check_views(doc, views, str(path), where)
+        check_claims(doc, str(path))
+        check_name(doc, str(path), methods or {})
         rows += result_rows(doc, str(path), first_index + k)
     return pd.DataFrame(rows)
