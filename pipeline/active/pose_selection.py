@@ -83,7 +83,7 @@ def episode_pose_space(scene: Scene, views: ProtocolViews, protocol: ProtocolCon
     about the scene box's centre (moved
     in the plane to the sector's centre for a sector goal), up from the sector manifold or estimated from the
     cameras; restricted to the target sector for a sector goal (the goal protocol's manifold)."""
-    manifold = (resolved_manifold(protocol.manifold, scene, scene_up(scene, scene.all_cameras()))
+    manifold = (resolved_manifold(protocol.manifold, scene, scene_up(scene, scene.all_cameras(), protocol.up))
                 if protocol.kind == "goal" else None)
     cams = scene.split(views.pool_split).cameras[sorted(set(views.initial_ids) | set(views.pool_ids))]
     lo, hi = scene.bounds()
@@ -97,7 +97,7 @@ def episode_pose_space(scene: Scene, views: ProtocolViews, protocol: ProtocolCon
         offset = torch.tensor(manifold.center, dtype=torch.float64) - centre
         centre = centre + offset - (offset @ up) * up
     else:  # the protocols' up: z for an object scene, estimated from every camera of a real one
-        up = scene_up(scene, scene.all_cameras())
+        up = scene_up(scene, scene.all_cameras(), protocol.up)
     # an object scene's bounding radius must stay outside every pose; a real capture's cameras
     # stand inside its point cloud's box, so there the bound does not apply
     obj = scene.traits.kind == "object"  # an object scene: the whole shell around it

@@ -6,12 +6,16 @@
     gopre-data twin SCENE OUT.ply [--width W] [--iterations N] [--seed S]
                                        the digital twin for world=twin: a splat trained on every
                                        training view (test views held out), its PSNR on both
-    gopre-data capture PHOTOS_DIR|VIDEO --out SCENE [--max-size PX] [--frames N]
+    gopre-data capture PHOTOS_DIR|VIDEO --out SCENE [--max-size PX] [--frames N] [--up METHOD|X,Y,Z]
                                        structure-from-motion (pycolmap, CPU) of your own photos or
                                        video into a COLMAP scene (undistorted, masks kept), with
                                        SCENE/capture.json: registered images, points, reprojection error
-    gopre-data cameras SCENE --out FIG.png
+    gopre-data cameras SCENE --out FIG.png [--up METHOD|X,Y,Z]
                                        the scene's cameras from above and the side, its goal sector
+    gopre-data geometry SCENE [--images DIR] [--every N]
+                                       the geometry check: an evenly spaced subset reconstructed with
+                                       exhaustive matching, aligned to the model's cameras; exits 3 when
+                                       the model is folded or drifted
     gopre-data benchmark PRESET [KEY=VALUE ...] --out FILE
                                        the preset's benchmark definitions: per (scene, seed) the initial
                                        views, pool, goal probes per round, test views with image hashes
@@ -42,6 +46,9 @@ def summary(path: Path, deep: bool = False) -> dict:
                            + (" (undistorted, cached)" if scene.info.get("undistorted") else ""),
            "traits": {"kind": scene.traits.kind, "up": scene.traits.up, "split": scene.traits.split},
            "points": 0 if scene.points is None else int(len(scene.points))}
+    if scene.traits.up != "z" or scene.info.get("up") is not None:  # an estimated up axis: every estimate
+        from pipeline.data.orientation import orientation
+        out["orientation"] = orientation(scene.all_cameras(), scene.points, scene.info.get("up")).to_dict()
     if scene.format == "colmap":
         out["model_image_size"] = scene.info.get("model_size")
     first.images[0]  # decode one image: a broken file fails here, naming it
@@ -136,9 +143,19 @@ def main(argv=None) -> int:
     cap.add_argument("--max-size", type=int, default=800, help="longest side of the images SfM sees (default 800)")
     cap.add_argument("--frames", type=int, default=100, help="video: how many sharp frames to keep (default 100)")
     cap.add_argument("--keep-work", action="store_true", help="keep the SfM database and logs (OUT/_capture_work)")
+    cap.add_argument("--up", default=None, metavar="METHOD|X,Y,Z",
+                     help="the scene's up axis: cameras (the mean camera up; the default), plane (the points' "
+                          "dominant plane), pca (the camera centres' smallest axis) or a vector; kept in capture.json")
     figure = sub.add_parser("cameras", help="a figure of a scene's cameras and its goal sector (no images)")
     figure.add_argument("scene", type=Path)
     figure.add_argument("--out", type=Path, required=True, help="the figure file (.png or .pdf)")
+    figure.add_argument("--up", default=None, metavar="METHOD|X,Y,Z", help="draw it about this up axis")
+    geo = sub.add_parser("geometry", help="check a COLMAP or nerfstudio model for a fold or drift: an evenly spaced "
+                                          "subset reconstructed with exhaustive matching, aligned to its cameras")
+    geo.add_argument("scene", type=Path, help="a scene folder (or a bare COLMAP model folder with --images)")
+    geo.add_argument("--images", type=Path, default=None, help="the folder of the model's images (default SCENE/images)")
+    geo.add_argument("--every", type=int, default=5, help="every Nth photo in name order (default 5; larger when "
+                                                          "the subset would exceed 80 photos)")
     bench = sub.add_parser("benchmark", help="write a preset's benchmark definitions (views a method must use)")
     bench.add_argument("preset", help="an experiment preset, e.g. table2_goal")
     bench.add_argument("overrides", nargs="*", help="gopre-run overrides, e.g. 'dataset=[generated]' splat=cpu")
@@ -149,7 +166,7 @@ def main(argv=None) -> int:
             from pipeline.data.capture import capture_scene
             made = capture_scene(args.source, args.out, args.max_size, args.frames,
                                  progress=lambda line: print(line, file=sys.stderr, flush=True),
-                                 keep_work=args.keep_work)
+                                 keep_work=args.keep_work, up=args.up)
             print(json.dumps(made.to_dict()))
             print(f"{made.registered}/{made.images} images registered, {made.points} points, "
                   f"{made.mean_reprojection_error_px:.2f} px mean reprojection error, {made.seconds['total']:.0f} s; "
@@ -157,8 +174,15 @@ def main(argv=None) -> int:
             return 0
         if args.command == "cameras":
             from pipeline.cli.scene_figure import camera_figure
-            print(json.dumps(camera_figure(args.scene, args.out)))
+            print(json.dumps(camera_figure(args.scene, args.out, up_choice=args.up)))
             return 0
+        if args.command == "geometry":
+            from pipeline.data.geometry_check import check_geometry
+            check = check_geometry(args.scene, args.images, args.every,
+                                   say=lambda line: print(line, file=sys.stderr, flush=True))
+            print(json.dumps(check.to_dict()))
+            print(("the model is FOLDED OR DRIFTED: " if check.folded else "") + check.line(), file=sys.stderr)
+            return 3 if check.folded else 0
         if args.command == "benchmark":
             print(json.dumps(write_benchmark(args.preset, args.overrides, args.out)))
             return 0

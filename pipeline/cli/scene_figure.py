@@ -15,14 +15,14 @@ from pipeline.data.manifolds import plane_basis
 from pipeline.data.protocols import ProtocolConfig, build_protocol, resolved_manifold, scene_up
 
 
-def camera_figure(scene_path: Path, out: Path, max_points: int = 4000) -> dict:
+def camera_figure(scene_path: Path, out: Path, max_points: int = 4000, up_choice: str | None = None) -> dict:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     scene = load_scene(scene_path, width=64)
-    goal = build_protocol(scene, ProtocolConfig(kind="goal"))
+    goal = build_protocol(scene, ProtocolConfig(kind="goal", up=up_choice))
     pool = scene.split(goal.pool_split).cameras
-    up = scene_up(scene, scene.all_cameras())
+    up = scene_up(scene, scene.all_cameras(), goal_up := ProtocolConfig(up=up_choice).up)
     e1, e2 = plane_basis(up, 0)
     centre = pool.centers.double().mean(0)
     inside = set(goal.probe_ids) | set(goal.test_ids)
@@ -56,8 +56,10 @@ def camera_figure(scene_path: Path, out: Path, max_points: int = 4000) -> dict:
     axes[0].plot([], [], "o", color="tab:orange", label="inside the 120-degree goal sector")
     axes[0].plot([], [], "o", color="tab:blue", label="outside")
     axes[0].legend(loc="lower left", fontsize=8)
-    fig.suptitle(f"{scene.name}: {len(pool)} cameras ({scene.format}), up axis estimated"
-                 if scene.traits.up == "estimated" else f"{scene.name}: {len(pool)} cameras")
+    how = (f"up axis: {goal_up if isinstance(goal_up, str) else 'given'}" if goal_up is not None
+           else f"up axis: {scene.info['up']} (capture.json)" if scene.info.get("up") is not None
+           else "up axis estimated from the cameras" if scene.traits.up == "estimated" else "up axis +z")
+    fig.suptitle(f"{scene.name}: {len(pool)} cameras ({scene.format}), {how}")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

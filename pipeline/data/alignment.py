@@ -49,13 +49,22 @@ class PoseErrors:
         return asdict(self)
 
 
-def pose_errors(true: Cameras, estimated: Cameras) -> PoseErrors:
+def pose_errors(true: Cameras, estimated: Cameras, fit_on: list[int] | None = None) -> PoseErrors:
     """The estimated cameras [C] against the true ones [C] (same order), after the similarity that
-    best maps the estimated centres onto the true."""
+    best maps the estimated centres onto the true (fitted on the cameras ``fit_on`` only, when
+    given: outliers left out of the fit are still measured)."""
+    return pose_error_arrays(true, estimated, fit_on)[0]
+
+
+def pose_error_arrays(true: Cameras, estimated: Cameras, fit_on: list[int] | None = None
+                      ) -> tuple[PoseErrors, Tensor, Tensor]:
+    """``pose_errors`` and the per-camera centre errors [C] (over the extent) and rotation errors [C]
+    (degrees) it summarises."""
     if len(true) != len(estimated):
         raise ValueError(f"pose_errors: {len(true)} true and {len(estimated)} estimated cameras")
     c_true, c_est = true.centers.double(), estimated.centers.double()
-    scale, rot, shift = umeyama(c_est, c_true)
+    fit = list(range(len(true))) if fit_on is None else list(fit_on)
+    scale, rot, shift = umeyama(c_est[fit], c_true[fit])
     aligned = c_est @ (scale * rot).T + shift
     extent = float((c_true - c_true.mean(0)).norm(dim=1).max())
     centre = (aligned - c_true).norm(dim=1) / extent
@@ -64,8 +73,8 @@ def pose_errors(true: Cameras, estimated: Cameras) -> PoseErrors:
     r_true, r_est = true.viewmats[:, :3, :3].double(), estimated.viewmats[:, :3, :3].double() @ rot.T
     cos = ((r_true.transpose(1, 2) @ r_est).diagonal(dim1=1, dim2=2).sum(1) - 1) / 2
     angle = torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))
-    return PoseErrors(len(true), extent, float(centre.median()), float(centre.max()), float(angle.median()),
-                      float(angle.max()), scale)
+    return (PoseErrors(len(true), extent, float(centre.median()), float(centre.max()), float(angle.median()),
+                       float(angle.max()), scale), centre, angle)
 
 
 def matched(true_names: list[str], true: Cameras, est_names: list[str], estimated: Cameras,

@@ -5,15 +5,23 @@
 1. the inputs: every image of the folder (unreadable files named before any work), or sharp
    frames chosen evenly from a video (``video.sharp_frames``); copies resized to at most
    ``max_size`` px (the user's files are never written);
-2. SIFT features (one shared SIMPLE_RADIAL camera), matching (exhaustive for a photo set,
-   sequential for video frames), incremental mapping; the largest model is kept and the others
-   are listed; fewer than half of the images registered is an error naming the ones that did not;
+2. SIFT features (one shared SIMPLE_RADIAL camera), matching, incremental mapping; the largest
+   model is kept and the others are listed; fewer than half of the images registered is an error
+   naming the ones that did not. Matching: exhaustive up to ``EXHAUSTIVE_UP_TO`` photos; above it
+   each photo with its ``NEIGHBOURS`` next in name (walk) order plus every pair among an evenly
+   spaced skeleton (every ``SKELETON_EVERY``-th photo), which closes the loop of a walk around the
+   object without a vocabulary tree (``loop_pairs``); sequential for video frames. A line of
+   progress during features and matching (``DatabaseProgress``);
+   a model not matched exhaustively then gets the geometry check (``geometry_check``: an evenly
+   spaced subset reconstructed with exhaustive matching and aligned to it), which says when the
+   model is folded or drifted;
 3. the kept model undistorted to a PINHOLE camera (COLMAP's image undistorter) into
    ``OUT/images`` + ``OUT/sparse/0``; masks that come with the photos (``masks/`` beside them, named
    like the photo, ``<stem>.png`` or ``<stem>_mask.png``: ``colmap.mask_path``) are undistorted the
    same way into ``OUT/masks``;
 4. ``OUT/capture.json``: images, registered, points, mean reprojection error, seconds per stage,
-   the photos that did not register and the sizes of the models that were left out.
+   the photos that did not register, the sizes of the models that were left out, the matching's
+   pairs and the geometry check's figures.
 """
 
 from __future__ import annotations
@@ -33,7 +41,10 @@ from pipeline.data.images import DataError
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 MIN_IMAGES = 8               # fewer cannot cover an object well enough to pick views from
-EXHAUSTIVE_UP_TO = 200       # photo sets above this are matched sequentially (pairs grow as n^2)
+EXHAUSTIVE_UP_TO = 200       # photo sets above this are matched along the walk plus a skeleton (pairs grow as n^2)
+NEIGHBOURS = 10              # each photo with its next 10 in name order (the bonsai re-staging's)
+SKELETON_EVERY = 5           # every pair among every 5th photo (292 photos: 4,461 pairs, not 42,486)
+PROGRESS_SECONDS = 20.0      # a progress line during features and matching at most this often
 
 
 class CaptureError(DataError):
@@ -54,6 +65,9 @@ class CaptureSummary:
     unregistered: list[str] = field(default_factory=list)
     other_models: list[int] = field(default_factory=list)   # registered images of each model left out
     masks: int = 0
+    pairs: int | None = None        # image pairs matched (None: sequential video matching)
+    geometry: dict | None = None    # the geometry check's figures (None: matched exhaustively)
+    orientation: dict | None = None  # the up axis: the choice (--up), every estimate, their angles
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -66,11 +80,11 @@ def photo_files(folder: Path) -> list[Path]:
     """The images of a photo folder in name order; unreadable ones are an error naming each."""
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
     bad = []
-    for path in files:
+    for path in files:  # decoded whole: verify() passes a truncated JPEG, which SIFT then fails on
         try:
             with Image.open(path) as im:
-                im.verify()
-        except (UnidentifiedImageError, OSError, SyntaxError) as err:
+                im.load()
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
             bad.append(f"{path.name} ({err})")
     if bad:
         raise CaptureError(f"{folder}: {len(bad)} unreadable image file(s): {', '.join(bad[:10])}"
@@ -124,7 +138,56 @@ def prepare_inputs(source: Path, work: Path, max_size: int, frames: int, say: Pr
             say(f"inputs: {k + 1}/{len(photos)} photos copied (at most {max_size} px)")
     if 0 < count < len(photos):
         raise CaptureError(f"{masks_src}: masks for {count} of {len(photos)} photos; give one per photo or none")
-    return [p.name for p in photos], "exhaustive" if len(photos) <= EXHAUSTIVE_UP_TO else "sequential", count
+    return [p.name for p in photos], "exhaustive" if len(photos) <= EXHAUSTIVE_UP_TO else "loop", count
+
+
+def loop_pairs(names: list[str], neighbours: int = NEIGHBOURS, skeleton_every: int = SKELETON_EVERY
+               ) -> list[tuple[str, str]]:
+    """The pairs the loop matcher matches: each image with its ``neighbours`` next in name order,
+    plus every pair among every ``skeleton_every``-th image; each pair once, in a fixed order."""
+    ordered = sorted(names)
+    pairs = {(i, j) for i in range(len(ordered)) for j in range(i + 1, min(i + 1 + neighbours, len(ordered)))}
+    skeleton = range(0, len(ordered), skeleton_every)
+    pairs |= {(i, j) for i in skeleton for j in skeleton if i < j}
+    return [(ordered[i], ordered[j]) for i, j in sorted(pairs)]
+
+
+class DatabaseProgress:
+    """A line every ``PROGRESS_SECONDS`` while COLMAP fills its database: how many images have
+    features, or how many pairs have been matched, out of the total (read from the SQLite file in a
+    background thread; COLMAP's own per-image log goes to files)."""
+
+    QUERIES = {"features": "SELECT COUNT(*) FROM keypoints", "matching": "SELECT COUNT(*) FROM two_view_geometries"}
+
+    def __init__(self, db: Path, stage: str, total: int, say: Progress, unit: str):
+        import threading
+        self.db, self.stage, self.total, self.say, self.unit = db, stage, total, say, unit
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def count(self) -> int | None:
+        import sqlite3
+        try:
+            with sqlite3.connect(f"file:{self.db}?mode=ro", uri=True, timeout=1.0) as con:
+                return int(con.execute(self.QUERIES[self.stage]).fetchone()[0])
+        except sqlite3.Error:  # not created yet, or locked for a moment
+            return None
+
+    def run(self) -> None:
+        start = time.perf_counter()
+        while not self.stop.wait(PROGRESS_SECONDS):
+            done = self.count()
+            if done is not None:
+                self.say(f"{self.stage}: {min(done, self.total)}/{self.total} {self.unit} "
+                         f"({time.perf_counter() - start:.0f} s)")
+
+    def __enter__(self) -> "DatabaseProgress":
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join()
 
 
 def quiet_colmap(log_dir: Path) -> None:
@@ -147,16 +210,23 @@ def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, secon
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "SIMPLE_RADIAL"
     say(f"features: SIFT on {len(names)} images ...")
-    pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, device=pycolmap.Device.cpu)
+    with DatabaseProgress(db, "features", len(names), say, "images"):
+        pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, device=pycolmap.Device.cpu)
     seconds["features"] = round(time.perf_counter() - start, 1)
     start = time.perf_counter()
-    say(f"matching: {matcher} ({len(names) * (len(names) - 1) // 2 if matcher == 'exhaustive' else 'neighbouring'}"
-        " pairs) ...")
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
-    else:
-        pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
+    pairs = pair_count(names, matcher)
+    say(f"matching: {matcher} ({pairs if pairs is not None else 'neighbouring'} pairs) ...")
+    with DatabaseProgress(db, "matching", pairs or 0, say, "pairs") if pairs else _nothing():
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        elif matcher == "loop":
+            pairs_file = work / "pairs.txt"
+            pairs_file.write_text("".join(f"{a} {b}\n" for a, b in loop_pairs(names)))
+            pycolmap.match_image_pairs(db, pairing_options=pycolmap.ImportedPairingOptions(
+                match_list_path=str(pairs_file)), device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_sequential(db, device=pycolmap.Device.cpu)
     seconds["matching"] = round(time.perf_counter() - start, 1)
     start = time.perf_counter()
     registered = [0]
@@ -178,6 +248,21 @@ def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, secon
     return ranked[0], others
 
 
+def pair_count(names: list[str], matcher: str) -> int | None:
+    """How many pairs the matcher matches (None: sequential, which COLMAP decides)."""
+    if matcher == "exhaustive":
+        return len(names) * (len(names) - 1) // 2
+    return len(loop_pairs(names)) if matcher == "loop" else None
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
 def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
     """The kept model and its images undistorted to PINHOLE in ``out`` (images/, sparse/0/);
     masks through the same cameras into ``out/masks`` (``colmap.undistort_masks``)."""
@@ -192,11 +277,37 @@ def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
         shutil.copytree(work / "mask_undistortion" / "masks", out / "masks", dirs_exist_ok=True)
 
 
+def orient(out: Path, up: str | list | None, say: Progress) -> dict:
+    """The scene's up axis as ``capture.json`` keeps it (``choice``: what ``--up`` asked for, which
+    the reader then uses; None: the cameras', as for any COLMAP scene), every estimate, and the
+    line that warns when they disagree."""
+    import pycolmap
+    import torch
+
+    from pipeline.data.geometry_check import colmap_poses
+    from pipeline.data.orientation import orientation
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    points = torch.tensor([list(p.xyz) for p in rec.points3D.values()], dtype=torch.float64) if rec.num_points3D() else None
+    found = orientation(colmap_poses(out).cameras(), points, up)
+    say(f"up axis: {found.method} {[round(x, 3) for x in found.up]}; the other estimates "
+        + ", ".join(f"{m} {a:.0f} deg away" for m, a in found.angles_deg.items() if m != found.method))
+    if found.warning():
+        say(f"warning: {found.warning()}")
+    return {"choice": up, **found.to_dict()}
+
+
 def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, frames: int = 100,
-                  progress: Progress | None = None, keep_work: bool = False) -> CaptureSummary:
-    """Reconstruct ``source`` (a photo folder or a video) into the COLMAP scene ``out``."""
+                  progress: Progress | None = None, keep_work: bool = False,
+                  up: str | list | None = None) -> CaptureSummary:
+    """Reconstruct ``source`` (a photo folder or a video) into the COLMAP scene ``out``; ``up``: the
+    scene's up axis (``pipeline.data.orientation``: a method or a vector; None: the cameras')."""
+    from pipeline.data.orientation import parse_up
     source, out = Path(source), Path(out)
     say = progress or (lambda line: None)
+    try:
+        up = parse_up(up)
+    except ValueError as err:
+        raise CaptureError(f"--up: {err}") from None
     if out.exists() and any(out.iterdir()):
         raise CaptureError(f"{out}: the output folder exists and is not empty (choose a new --out)")
     if max_size < 64:
@@ -222,6 +333,15 @@ def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, fram
         say(f"undistorting {len(registered)} images{' and masks' if masks else ''} to PINHOLE ...")
         undistort(work, model_dir, out, masks > 0)
         seconds["undistortion"] = round(time.perf_counter() - t, 1)
+        geometry = None
+        if matcher != "exhaustive":  # a model matched along the walk may be folded: check it
+            from pipeline.data.geometry_check import check_geometry
+            t = time.perf_counter()
+            say("geometry check: an evenly spaced subset reconstructed with exhaustive matching ...")
+            check = check_geometry(out, say=say, work=work / "geometry")
+            seconds["geometry_check"] = round(time.perf_counter() - t, 1)
+            say(("warning: the model is FOLDED OR DRIFTED: " if check.folded else "") + check.line())
+            geometry = check.to_dict()
     except BaseException:
         if not keep_work:
             shutil.rmtree(out, ignore_errors=True)
@@ -229,8 +349,10 @@ def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, fram
     if not keep_work:
         shutil.rmtree(work, ignore_errors=True)
     seconds["total"] = round(time.perf_counter() - start, 1)
+    oriented = orient(out, up, say)
     summary = CaptureSummary(str(source), str(out), len(names), len(registered), model.num_points3D(),
                              round(float(model.compute_mean_reprojection_error()), 4), "SIMPLE_RADIAL -> PINHOLE",
-                             matcher, seconds, missing, others, masks)
+                             matcher, seconds, missing, others, masks, pair_count(names, matcher), geometry,
+                             oriented)
     (out / "capture.json").write_text(json.dumps(summary.to_dict(), indent=1) + "\n")
     return summary

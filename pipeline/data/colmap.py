@@ -205,6 +205,9 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
         scene = read_colmap(copy, width, "images", background, llff_hold, False, budget_mb, masks)
         scene.name, scene.root = root.name, root
         scene.info["undistorted"] = str(copy)
+        chosen = capture_up(root)
+        if chosen is not None:
+            scene.info["up"] = chosen
         return scene
     entries = sorted(rec.images.values(), key=lambda im: im.name)
     paths = [image_dir / im.name for im in entries]
@@ -241,10 +244,32 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
     colors = torch.from_numpy(np.array([p.color for p in pts], dtype=np.float32)) / 255 if pts else None
     mask_files = (scene_masks(root, root / "masks", names, {"all": list(range(len(names))), "train": train,
                                                             "test": test}) if masks else None)
-    return Scene(root.name, "colmap", root, splits, bg, points, colors,
-                 info={"sparse": str(sparse), "model_size": [int(rec.cameras[entries[0].camera_id].width),
-                                                             int(rec.cameras[entries[0].camera_id].height)]},
-                 masks=mask_files)
+    info = {"sparse": str(sparse), "model_size": [int(rec.cameras[entries[0].camera_id].width),
+                                                  int(rec.cameras[entries[0].camera_id].height)]}
+    chosen = capture_up(root)
+    if chosen is not None:  # gopre-data capture --up: the scene's own up axis
+        info["up"] = chosen
+    return Scene(root.name, "colmap", root, splits, bg, points, colors, info=info, masks=mask_files)
+
+
+def capture_up(root: Path) -> str | list | None:
+    """The up axis ``gopre-data capture --up`` chose for the scene (``capture.json``'s
+    ``orientation.choice``), None when it chose none."""
+    import json
+    path = root / "capture.json"
+    if not path.exists():
+        return None
+    try:
+        choice = (json.loads(path.read_text()).get("orientation") or {}).get("choice")
+    except (OSError, ValueError, AttributeError) as err:
+        raise DataError(f"{path}: cannot read it ({err})") from None
+    if choice is None:
+        return None
+    from pipeline.data.orientation import parse_up
+    try:
+        return parse_up(choice)
+    except ValueError as err:
+        raise DataError(f"{path}: orientation.choice: {err}") from None
 
 
 def observations(root: str | Path, image_name: str):

@@ -4,7 +4,7 @@ What a reader reads, per format (the sources, listed without decoding an image):
 
 | format | model files | images |
 |---|---|---|
-| colmap | ``cameras``, ``images``, ``points3D`` (and ``rigs``, ``frames``) ``.bin``/``.txt`` of its sparse model | every file in ``images/`` (and ``masks/`` when the job reads masks) |
+| colmap | ``cameras``, ``images``, ``points3D`` (and ``rigs``, ``frames``) ``.bin``/``.txt`` of its sparse model, ``capture.json`` (a capture's up axis) | every file in ``images/`` (and ``masks/`` when the job reads masks) |
 | blender | ``transforms_{train,val,test}.json`` | every frame those files name |
 | nerfstudio | ``transforms.json`` | every frame's ``file_path`` (and ``mask_path`` when read), ``ply_file_path`` |
 
@@ -99,7 +99,8 @@ def _colmap_sources(root: Path, masks: bool) -> list[Path]:
     if not images:
         raise DataError(f"{root / 'images'}: no images to fingerprint")
     mask_files = [p for p in _files_in(root / "masks") if p.suffix.lower() in IMAGE_SUFFIXES] if masks else []
-    return model + images + mask_files
+    chosen = [root / "capture.json"] if (root / "capture.json").is_file() else []  # may set the up axis
+    return model + images + mask_files + chosen
 
 
 def _json(path: Path) -> dict:

@@ -20,6 +20,7 @@ import torch
 from pipeline.bounds import FLOAT, INT, STR, bounded, require_bounds
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold, azimuths_deg, estimate_up, manifold_from_dict, member_ids
+from pipeline.data.orientation import orientation, parse_up
 from pipeline.data.sampling import probe_count
 from pipeline.data.scene import Scene, SceneTraits
 
@@ -39,9 +40,14 @@ class ProtocolConfig:
     llff_hold: int = bounded(8, INT, ge=2)
     probe_manifold: dict | None = None    # draw probes from this manifold only (the paper's
                                           # goal-metric misalignment ablation under ``global``)
+    # the scene's up axis (``pipeline.data.orientation``): cameras | plane | pca | [x, y, z]; None: the
+    # scene's own (a capture's --up kept in capture.json, else +z for the Blender layout, else cameras);
+    # set by a dataset entry's ``up``
+    up: str | list | None = None
 
     def __post_init__(self) -> None:
         require_bounds(self)
+        self.up = parse_up(self.up)
         k = self.probes  # a count (a whole number) or a fraction below 1
         if isinstance(k, float) and k > 1 and not k.is_integer():
             raise ValueError(f"probes: {k!r} is not a count >= 1 or a fraction in (0, 1)")
@@ -68,9 +74,14 @@ class ProtocolViews:
         return self.budget - len(self.initial_ids)
 
 
-def scene_up(scene: Scene, cameras: Cameras) -> torch.Tensor:
-    """+z for a scene whose traits say so (the Blender layout); else estimated from the cameras."""
-    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if scene.traits.up == "z" else estimate_up(cameras)
+def scene_up(scene: Scene, cameras: Cameras, choice: str | list | None = None) -> torch.Tensor:
+    """The up axis [3]: ``choice`` (a dataset entry's ``up``), else the scene's own (``info["up"]``,
+    a capture's ``--up``), else +z for a scene whose traits say so (the Blender layout), else
+    estimated from the cameras (``pipeline.data.orientation``)."""
+    choice = choice if choice is not None else scene.info.get("up")
+    if choice is None:
+        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if scene.traits.up == "z" else estimate_up(cameras)
+    return torch.tensor(orientation(cameras, scene.points, choice).up, dtype=torch.float64)
 
 
 def uniform_initial(cameras: Cameras, ids: list[int], count: int, up: torch.Tensor) -> list[int]:
@@ -121,7 +132,7 @@ def build_protocol(scene: Scene, cfg: ProtocolConfig) -> ProtocolViews:
         test_all = [i for i in range(n) if i % cfg.llff_hold == 0]
         pool_all = [i for i in range(n) if i % cfg.llff_hold != 0]
     pool_cams = scene.split(pool_split).cameras
-    up = scene_up(scene, scene.all_cameras())
+    up = scene_up(scene, scene.all_cameras(), cfg.up)
     probe_pool = pool_all
     if cfg.kind == "goal":
         manifold = resolved_manifold(cfg.manifold, scene, up)

@@ -214,6 +214,8 @@ def expand_jobs(cfg: DictConfig) -> list[Job]:
                 job["world"] = copy.deepcopy(job_world)
             if dset.get("masks"):  # train and evaluate on the capture's masked-in pixels only
                 job["masks"] = True
+            if dset.get("up") is not None and "up" not in (method.get("protocol") or {}):
+                job["protocol"]["up"] = dset["up"]  # the scene's up axis (absent when unset: hashes as before)
             if plugins[mname] is not None:  # the plugin's code is part of what the job computes
                 job["plugin"] = plugins[mname]
             data_key = (job["scene_path"], json.dumps(job["generate"], sort_keys=True), bool(job.get("masks")))

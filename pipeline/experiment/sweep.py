@@ -225,7 +225,29 @@ def validate_sweep(jobs: list[Job], decode_images: bool = True) -> dict[str, Sce
     errors += protocol_errors(jobs, scenes, decode_images) + init_errors(jobs)
     if errors:
         raise ConfigError(f"{len(errors)} problem(s), nothing was started:\n  " + "\n  ".join(errors))
+    for line in orientation_warnings(jobs, scenes):
+        LOG.warning(line)
     return scenes
+
+
+def orientation_warnings(jobs: list[Job], scenes: dict[str, Scene]) -> list[str]:
+    """One line per scene whose up axis (the one its jobs use) disagrees with the other estimates
+    (``pipeline.data.orientation``): the goal protocol's sector would be taken about a tilted axis."""
+    from pipeline.data.orientation import orientation
+    out, seen = [], set()
+    for job in jobs:
+        key = scene_key(job)
+        choice = job.episode.protocol.up
+        if key not in scenes or (key, str(choice)) in seen:
+            continue
+        seen.add((key, str(choice)))
+        scene = scenes[key]
+        if choice is None and scene.info.get("up") is None and scene.traits.up == "z":
+            continue  # the layout says +z (Blender)
+        warning = orientation(scene.all_cameras(), scene.points, choice or scene.info.get("up")).warning()
+        if warning:
+            out.append(f"warning: dataset.{job.dataset} scene {job.scene!r}: {warning}")
+    return out
 
 
 def warn_stale(name: str, records: RecordsFile, skipped: set[str], output_dir: Path) -> None:
