@@ -7,6 +7,7 @@ colour of the views it took. Its PSNR per test image is computed here against th
 
     python examples/external_result.py BENCHMARK.json SCENE_DIR --scene generated --seed 0 --out result.json
     gopre-report outputs/table2_goal --results result.json      # its row beside the sweep's
+    (--renders also writes renders/<test_id>.png beside result.json: the report scores those itself)
 
 Hashes follow gopre's convention (pipeline/interchange/hashes.py): a ground-truth image is the
 sha256 of its file's bytes; a render the sha256 of its uint8 RGB pixels, [H, W, 3] in C order.
@@ -48,6 +49,9 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, required=True)
     parser.add_argument("--protocol", default=None)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--renders", action="store_true",
+                        help="also write each test view's render as renders/<test_id>.png beside --out "
+                             "(gopre-report then scores the renders itself)")
     args = parser.parse_args(argv)
     doc = json.loads(args.benchmark.read_text())
     entries = [e for e in doc["entries"] if e["benchmark"]["scene"] == args.scene
@@ -76,6 +80,9 @@ def main(argv=None) -> int:
         pred = np.broadcast_to(colour, truth.shape)
         mse = float(np.mean((pred - truth) ** 2))
         pixels = np.floor(np.clip(pred, 0, 1) * 255 + 0.5).astype(np.uint8)
+        if args.renders:
+            (args.out.parent / "renders").mkdir(parents=True, exist_ok=True)
+            Image.fromarray(pixels).save(args.out.parent / "renders" / f"{view}.png")
         per_image.append({"test_id": view, "psnr": -10 * math.log10(max(mse, 1e-12)),
                           "render_sha256": hashlib.sha256(np.ascontiguousarray(pixels).tobytes()).hexdigest()})
     rounds.append({"num_views": len(taken), "selected": []})

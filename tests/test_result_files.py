@@ -5,6 +5,7 @@ report beside the sweep's rows; a changed split or ground-truth hash is refused 
 
 import copy
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -179,6 +180,61 @@ def test_a_result_named_like_a_sweep_method_but_another_one_is_refused(sweep, ex
                                               "reported sweep, but this result is another identity")
     # against the definition alone there is no sweep row to merge into: accepted under that name
     assert report_main(["--results", str(path), "--benchmark", str(bench), "--out", str(tmp_path / "b")]) == 0
+
+
+@pytest.fixture(scope="module")
+def with_renders(sweep, tmp_path_factory):
+    """The outside result again, shipping its renders (renders/<test_id>.png beside it)."""
+    out, bench = sweep
+    scene = Path(json.loads(results(out)[0].read_text())["config"]["scene_path"])
+    target = tmp_path_factory.mktemp("shipped") / "result.json"
+    subprocess.run([sys.executable, str(ROOT / "examples" / "external_result.py"), str(bench), str(scene), "--scene",
+                    "generated", "--seed", "0", "--out", str(target), "--renders"], check=True, capture_output=True)
+    return target, scene
+
+
+def test_shipped_renders_are_scored_against_the_episodes_ground_truth(sweep, with_renders, tmp_path):
+    """The example resizes the ground truth its own way (bicubic); the report scores its renders
+    against the ground truth as the episodes read it, and says so in the rows."""
+    import numpy as np
+    from PIL import Image
+
+    from pipeline.cli.report import RenderScorer
+    from pipeline.data.load import load_scene
+    out, bench = sweep
+    path, scene_path = with_renders
+    doc = json.loads(path.read_text())
+    rows = external_rows([str(path)], [str(bench)], [out], set(), rescore=RenderScorer([out]))
+    final = rows[rows["kind"] == "final"].iloc[0]
+    assert final["metrics_source"].startswith("recomputed from its ")
+    test = load_scene(scene_path, width=doc["views"]["image_width"]).split(doc["views"]["test_split"])
+    by_hand = []
+    for item in doc["final"]["per_image"]:
+        pixels = np.asarray(Image.open(path.parent / "renders" / f"{item['test_id']}.png"), dtype=np.float64) / 255
+        mse = np.mean((pixels - test.images[item["test_id"]].double().numpy()) ** 2)
+        by_hand.append(-10 * np.log10(mse))
+    assert final["psnr"] == pytest.approx(np.mean(by_hand), abs=1e-6)  # the render as float32 pixels
+    assert final["psnr"] != pytest.approx(doc["final"]["psnr"], abs=1e-6)  # the file's own convention differs
+    plain = external_rows([str(path)], [str(bench)], [out], set())  # no scorer: as the file states
+    assert plain[plain["kind"] == "final"].iloc[0]["psnr"] == pytest.approx(doc["final"]["psnr"])
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda folder, view: __import__("PIL.Image").Image.new("RGB", (48, 48), (1, 2, 3)).save(folder / f"{view}.png"),
+     r"renders/\d+.png: its pixels are not final.per_image's render_sha256 for test view \d+"),
+    (lambda folder, view: (folder / f"{view}.png").unlink(), r"renders/\d+.png is missing"),
+])
+def test_a_render_that_is_not_what_the_file_says_is_refused(sweep, with_renders, tmp_path, damage, message):
+    from pipeline.cli.report import RenderScorer
+    out, bench = sweep
+    path, _ = with_renders
+    copy = tmp_path / "copy"
+    shutil.copytree(path.parent, copy)
+    view = json.loads(path.read_text())["final"]["per_image"][1]["test_id"]
+    damage(copy / "renders", view)
+    with pytest.raises(DocumentError, match=message) as err:
+        external_rows([str(copy / "result.json")], [str(bench)], [out], set(), rescore=RenderScorer([out]))
+    assert "\n" not in str(err.value)
 
 
 def test_the_report_command_refuses_with_one_line(sweep, external, tmp_path, capsys):

@@ -37,7 +37,8 @@ def with_results(frame, patterns: list[str], benchmarks: list[str], sweeps: list
     from pipeline.report.report import in_config_order, with_metrics_version
     known = set() if frame is None else set(frame["config_hash"].dropna())
     first = 0 if frame is None or "job_index" not in frame else int(frame["job_index"].max()) + 1
-    extra = external_rows(patterns, benchmarks, sweeps, known, first, method_identities(frame))
+    extra = external_rows(patterns, benchmarks, sweeps, known, first, method_identities(frame),
+                          rescore=RenderScorer(sweeps))
     if extra.empty:
         if frame is None:
             raise ValueError("--results: every result given is already in the reported sweep")
@@ -45,6 +46,42 @@ def with_results(frame, patterns: list[str], benchmarks: list[str], sweeps: list
     if frame is None:
         return in_config_order(with_metrics_version(extra))
     return in_config_order(pd.concat([frame, with_metrics_version(extra)], ignore_index=True))
+
+
+class RenderScorer:
+    """Scores a result's shipped renders (``pipeline.eval.outside_renders``) against the scene of the
+    reported sweep that ran its benchmark (read once per scene and width); None when it ships none.
+    Without such a sweep the renders' hashes are all that can be checked, and a line says so."""
+
+    def __init__(self, sweeps: list[Path]):
+        self.sweeps, self.scenes = sweeps, {}
+
+    def scene_of(self, doc: dict):
+        from pipeline.data.load import load_scene
+        from pipeline.experiment.layout import SweepFolder
+        b, width = doc["benchmark"], doc["views"].get("image_width")
+        for sweep in self.sweeps:
+            folder = SweepFolder(sweep if sweep.is_dir() else sweep.parent)
+            if not folder.jobs_file.exists():
+                continue
+            job = next((j for j in folder.read_jobs() if (j.dataset, j.scene) == (b["dataset"], b["scene"])), None)
+            if job is not None:
+                key = (job.scene_path, width, job.masks)
+                if key not in self.scenes:
+                    self.scenes[key] = load_scene(job.scene_path, width=width, masks=job.masks)
+                return self.scenes[key]
+        return None
+
+    def __call__(self, doc: dict, path: Path):
+        from pipeline.eval.outside_renders import recompute, shipped_renders
+        if shipped_renders(path) is None:
+            return None
+        scene = self.scene_of(doc)
+        if scene is None:
+            print(f"{command_name('report')}: note: {path} ships renders, but no reported sweep ran its scene: "
+                  "its metrics are taken as the file states", file=sys.stderr)
+            return None
+        return recompute(doc, path, scene)
 
 
 def baseline_setting(frame, args) -> str | None:

@@ -5,7 +5,10 @@ validated, matched with the benchmark it claims, (dataset, scene, protocol, seed
 refused naming the file and the first differing field unless its views equal the reference's:
 a definition from ``--benchmark FILE`` (``gopre-data benchmark``), else the same benchmark's
 ``result.json`` written by a job of the reported sweeps. Accepted results become records rows
-beside the sweep's (same tables, same paired comparisons).
+beside the sweep's (same tables, same paired comparisons). A result that ships its renders
+(``renders/<test_id>.png`` beside it) is scored from them against the ground truth as the episodes
+read it (``rescore``, given by the command: ``pipeline.eval.outside_renders``); its rows say which
+(``metrics_source``).
 """
 
 from __future__ import annotations
@@ -96,9 +99,19 @@ def check_name(doc: dict, source: str, methods: dict[str, set[tuple]]) -> None:
                             + f"; the sweep's: strategy {theirs[0]!r}, code {theirs[1]!r}): give it its own name")
 
 
+def rescored(doc: dict, metrics) -> dict:
+    """``doc`` with its per-image and final PSNR / SSIM replaced by ``metrics`` (recomputed from its
+    shipped renders: ``pipeline.eval.outside_renders``)."""
+    per_image = [{**item, "psnr": float(p), "ssim": float(s)}
+                 for item, p, s in zip(doc["final"]["per_image"], metrics.psnr, metrics.ssim)]
+    final = {**doc["final"], "per_image": per_image, "psnr": sum(metrics.psnr) / len(metrics.psnr),
+             "ssim": sum(metrics.ssim) / len(metrics.ssim)}
+    return {**doc, "final": final}
+
+
 def external_rows(patterns: list[str], benchmarks: list[str], sweeps: list[Path],
                   known_hashes: set[str], first_index: int = 0,
-                  methods: dict[str, set[tuple]] | None = None) -> pd.DataFrame:
+                  methods: dict[str, set[tuple]] | None = None, rescore=None) -> pd.DataFrame:
     """The accepted results as records rows; results already in the sweep (same config hash)
     are left out. Each is checked against itself (``check_claims``), against the sweep's method
     names (``check_name``: ``methods`` from ``method_identities``) and against the benchmark's views;
@@ -117,5 +130,11 @@ def external_rows(patterns: list[str], benchmarks: list[str], sweeps: list[Path]
         check_views(doc, views, str(path), where)
         check_claims(doc, str(path))
         check_name(doc, str(path), methods or {})
-        rows += result_rows(doc, str(path), first_index + k)
+        metrics = rescore(doc, path) if rescore is not None else None  # None: no renders shipped
+        source = "as the file states"
+        if metrics is not None:
+            doc = rescored(doc, metrics)
+            source = (f"recomputed from its {len(metrics.psnr)} renders (the file's own PSNR up to "
+                      f"{metrics.largest_psnr_gap_db:.3f} dB away)")
+        rows += [{**row, "metrics_source": source} for row in result_rows(doc, str(path), first_index + k)]
     return pd.DataFrame(rows)
