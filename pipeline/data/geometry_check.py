@@ -99,15 +99,19 @@ def colmap_poses(root: Path, images: Path | None = None) -> ModelPoses:
         rec = pycolmap.Reconstruction(str(sparse))
     except Exception as err:
         raise DataError(f"{sparse}: cannot read the COLMAP model ({err})") from None
-    entries = sorted(rec.images.values(), key=lambda im: im.name)
-    viewmats = []
-    for im in entries:
-        pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-        m = torch.eye(4, dtype=torch.float64)
-        m[:3] = torch.as_tensor(pose.matrix(), dtype=torch.float64)
-        viewmats.append(m)
+    names, viewmats = image_poses(rec.images.values())
     folder = images or root / "images"
-    return ModelPoses([im.name for im in entries], torch.stack(viewmats), [folder / im.name for im in entries])
+    return ModelPoses(names, viewmats, [folder / name for name in names])
+
+
+def image_poses(images) -> tuple[list[str], torch.Tensor]:
+    """pycolmap images in name order: their names and world->camera [C, 4, 4] float64."""
+    entries = sorted(images, key=lambda im: im.name)
+    viewmats = torch.eye(4, dtype=torch.float64).repeat(len(entries), 1, 1)
+    for k, im in enumerate(entries):
+        pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+        viewmats[k, :3] = torch.as_tensor(pose.matrix(), dtype=torch.float64)
+    return [im.name for im in entries], viewmats
 
 
 def nerfstudio_poses(root: Path, images: Path | None = None) -> ModelPoses:
@@ -149,17 +153,11 @@ def reconstruct_subset(model: ModelPoses, every: int, work: Path, say: Progress)
         shutil.copy(model.images[i], work / "images" / name)
         names.append(name)
     rec, _ = reconstruct(work, names, "exhaustive", say, {})
-    entries = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
-    viewmats = []
-    for im in entries:
-        pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-        m = torch.eye(4, dtype=torch.float64)
-        m[:3] = torch.as_tensor(pose.matrix(), dtype=torch.float64)
-        viewmats.append(m)
-    if len(entries) < 3:
-        raise DataError(f"geometry check: only {len(entries)} of {len(names)} subset photos registered; "
+    registered, viewmats = image_poses(rec.image(i) for i in rec.reg_image_ids())
+    if len(registered) < 3:
+        raise DataError(f"geometry check: only {len(registered)} of {len(names)} subset photos registered; "
                         "nothing to align")
-    return ModelPoses([im.name for im in entries], torch.stack(viewmats), []), len(names)
+    return ModelPoses(registered, viewmats, []), len(names)
 
 
 def compare(model: ModelPoses, subset: ModelPoses, subset_size: int, every: int, seconds: float = 0.0) -> GeometryCheck:
