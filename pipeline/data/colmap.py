@@ -47,7 +47,7 @@ def check_cameras_bin(path: Path) -> None:
         raise DataError(f"{path}: truncated COLMAP camera file ({len(data)} bytes, {offset} needed)")
 
 
-def _sparse_dir(root: Path) -> Path:
+def sparse_dir(root: Path) -> Path:
     for candidate in (root / "sparse" / "0", root / "sparse"):
         if (candidate / "cameras.bin").exists() or (candidate / "cameras.txt").exists():
             return candidate
@@ -188,7 +188,7 @@ def read_colmap(root: str | Path, width: int | None = None, images: str = "image
     root = Path(root)
     if not root.is_dir():
         raise DataError(f"{root}: scene folder does not exist")
-    sparse = _sparse_dir(root)
+    sparse = sparse_dir(root)
     if (sparse / "cameras.bin").exists():
         check_cameras_bin(sparse / "cameras.bin")
     try:
@@ -276,7 +276,7 @@ def observations(root: str | Path, image_name: str):
     """The 2D observations of one image and their 3D points: ([M, 2] pixels, [M, 3] points)."""
     import pycolmap
 
-    rec = pycolmap.Reconstruction(str(_sparse_dir(Path(root))))
+    rec = pycolmap.Reconstruction(str(sparse_dir(Path(root))))
     im = next(i for i in rec.images.values() if i.name == image_name)
     pairs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
     xy = torch.tensor([list(a) for a, _ in pairs], dtype=torch.float64)

@@ -92,8 +92,8 @@ def _files_in(folder: Path) -> list[Path]:
 
 
 def _colmap_sources(root: Path, masks: bool) -> list[Path]:
-    from pipeline.data.colmap import _sparse_dir
-    sparse = _sparse_dir(root)
+    from pipeline.data.colmap import sparse_dir
+    sparse = sparse_dir(root)
     model = [p for p in _files_in(sparse) if p.stem in MODEL_STEMS and p.suffix in (".bin", ".txt")]
     images = [p for p in _files_in(root / "images") if p.suffix.lower() in IMAGE_SUFFIXES]
     if not images:

@@ -93,8 +93,8 @@ def colmap_poses(root: Path, images: Path | None = None) -> ModelPoses:
     itself when it holds the model files), images from ``images`` (default ``root/images``)."""
     import pycolmap
 
-    from pipeline.data.colmap import _sparse_dir
-    sparse = root if (root / "cameras.bin").exists() or (root / "cameras.txt").exists() else _sparse_dir(root)
+    from pipeline.data.colmap import sparse_dir
+    sparse = root if (root / "cameras.bin").exists() or (root / "cameras.txt").exists() else sparse_dir(root)
     try:
         rec = pycolmap.Reconstruction(str(sparse))
     except Exception as err:
@@ -115,8 +115,8 @@ def image_poses(images) -> tuple[list[str], torch.Tensor]:
 
 
 def nerfstudio_poses(root: Path, images: Path | None = None) -> ModelPoses:
-    from pipeline.data.nerfstudio import _load, frame_viewmats
-    meta = _load(root)
+    from pipeline.data.nerfstudio import frame_viewmats, load_transforms
+    meta = load_transforms(root)
     frames = sorted(meta["frames"], key=lambda f: str(f["file_path"]))
     base = images or root
     files = [(base / Path(f["file_path"]).name) if images else (root / f["file_path"]) for f in frames]

@@ -30,7 +30,7 @@ INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION = ("k1", "k2", "p1", "p2")
 
 
-def _load(root: Path) -> dict:
+def load_transforms(root: Path) -> dict:
     path = root / "transforms.json"
     try:
         meta = json.loads(path.read_text())
@@ -80,7 +80,7 @@ def read_nerfstudio(root: str | Path, width: int | None = None, masks: bool = Fa
                     background=(0.0, 0.0, 0.0)) -> Scene:
     root = Path(root)
     path = root / "transforms.json"
-    meta = _load(root)
+    meta = load_transforms(root)
     for i, frame in enumerate(meta["frames"]):
         if "file_path" not in frame or "transform_matrix" not in frame:
             raise DataError(f"{path}: frame {i} lacks 'file_path' or 'transform_matrix'")

@@ -1,0 +1,138 @@
+"""Pixel-level uncertainty metrics against small arrays worked by hand and independent routes:
+loops that follow the released code line by line (AaltoML's ause, 3DGS-Uncertainty's ause_torch),
+scipy's normal distribution and correlation functions, and exact averages over tie-breaks."""
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from pipeline.eval.pixel_uncertainty import (AUCE_ALPHAS, MAX_FRACTIONS, START_FRACTIONS, auce, ause_max, ause_start,
+                                             correlations, gaussian_nll, kept_means, random_curve, sparsification)
+
+
+def test_curves_by_hand():
+    error, unc = np.array([1.0, 2.0, 3.0, 4.0]), np.array([4.0, 3.0, 2.0, 1.0])  # the most uncertain are the best
+    s = sparsification(error, unc, [0.0, 0.25, 0.5, 0.75])
+    assert s.by_uncertainty.tolist() == [2.5, 3.0, 3.5, 4.0]
+    assert s.oracle.tolist() == [2.5, 2.0, 1.5, 1.0] and s.random.tolist() == [2.5] * 4
+    rmse = sparsification(error ** 2, unc, [0.0, 0.5], root=True)
+    assert rmse.oracle.tolist() == pytest.approx([math.sqrt(7.5), math.sqrt(2.5)])
+
+
+def test_an_uncertainty_equal_to_the_error_has_zero_ause_in_both_conventions():
+    rng = np.random.default_rng(0)
+    error = rng.gamma(2.0, 0.1, 5000)
+    for convention in (ause_max, ause_start):
+        value, s = convention(error, error)
+        assert value == pytest.approx(0.0, abs=1e-12) and np.allclose(s.by_uncertainty, s.oracle)
+        assert convention(error ** 2, error, root=True)[0] == pytest.approx(0.0, abs=1e-12)
+        assert convention(error, 3 * error + 1)[0] == pytest.approx(0.0, abs=1e-12)  # any increasing map
+
+
+def test_a_constant_uncertainty_gives_the_random_curve_exactly():
+    rng = np.random.default_rng(1)
+    error = rng.random(997)
+    s = sparsification(error, np.full(997, 0.3))
+    assert np.allclose(s.by_uncertainty, random_curve(error, MAX_FRACTIONS)) and np.allclose(s.by_uncertainty, error.mean())
+
+
+def test_ties_are_taken_in_expectation_over_every_tie_break():
+    error = np.array([0.5, 0.1, 0.9, 0.3, 0.7, 0.2])
+    unc = np.array([1.0, 1.0, 2.0, 2.0, 2.0, 3.0])
+    fractions = np.array([0.0, 0.2, 0.4, 0.6, 0.8])
+    exact = []
+    for perm in itertools.permutations(range(6)):  # every order among equal keys, each equally likely
+        tiebreak = np.empty(6)
+        tiebreak[list(perm)] = np.arange(6)
+        order = np.lexsort((tiebreak, unc))
+        exact.append([error[order][:max(1, int((1 - f) * 6))].mean() for f in fractions])
+    assert kept_means(error, unc, fractions) == pytest.approx(np.mean(exact, axis=0), abs=1e-12)
+
+
+def _aalto_ause(unc, err, root):
+    """AaltoML's released ause(), line by line (sorted slices, normalised by the max of both curves)."""
+    ratios = np.linspace(0, 1, 100, endpoint=False)
+    n = len(err)
+    err_sorted = np.sort(err)
+    by_var = err[np.argsort(unc, kind="stable")]
+    f = (lambda x: math.sqrt(x.mean())) if root else (lambda x: x.mean())
+    oracle = np.array([f(err_sorted[:int((1 - r) * n)]) for r in ratios])
+    curve = np.array([f(by_var[:int((1 - r) * n)]) for r in ratios])
+    top = max(oracle.max(), curve.max())
+    return np.trapezoid(curve / top - oracle / top, ratios)
+
+
+def _3dgsu_ause(err, unc):
+    """The 3DGS-Uncertainty code's ause_torch, line by line (zeros dropped, cumulative sums, start-normalised)."""
+    keep = (err != 0) & (unc != 0)
+    err, unc = err[keep], unc[keep]
+    ratios = np.linspace(0, 0.999, 100)
+    idx = ((1 - ratios) * len(err)).astype(int)[:-1]
+    oracle = np.cumsum(np.sort(err))[idx - 1] / idx
+    curve = np.cumsum(err[np.argsort(unc, kind="stable")])[idx - 1] / idx
+    return np.trapezoid(curve / oracle[0] - oracle / oracle[0], ratios[:len(oracle)])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_each_convention_equals_its_released_code(seed):
+    rng = np.random.default_rng(seed)
+    truth = rng.random(3000)
+    err = np.abs(truth + rng.normal(0, 0.2, 3000))
+    unc = np.abs(truth + rng.normal(0, 0.5, 3000))
+    err[:50] = 0.0  # pixels with no error: 3DGS-Uncertainty drops them
+    assert ause_max(err, unc)[0] == pytest.approx(_aalto_ause(unc, err, False), abs=1e-12)
+    assert ause_max(err ** 2, unc, root=True)[0] == pytest.approx(_aalto_ause(unc, err ** 2, True), abs=1e-12)
+    assert ause_start(err, unc)[0] == pytest.approx(_3dgsu_ause(err, unc), abs=1e-12)
+    assert ause_max(err, unc)[0] != pytest.approx(ause_start(err, unc)[0], abs=1e-3)  # two numbers, named apart
+    assert len(START_FRACTIONS) == 100 and START_FRACTIONS[-1] == 0.999
+
+
+def test_a_worse_ranking_has_a_larger_ause():
+    rng = np.random.default_rng(3)
+    err = rng.random(2000)
+    good = err + rng.normal(0, 0.05, 2000)
+    bad = err + rng.normal(0, 0.5, 2000)
+    assert 0 < ause_max(err, good)[0] < ause_max(err, bad)[0] < ause_max(err, -err)[0]
+
+
+def test_gaussian_nll_against_scipy_with_the_floor():
+    rng = np.random.default_rng(4)
+    mean, target = rng.random((500, 3)), rng.random((500, 3))
+    sigma = rng.uniform(0.0, 0.2, 500)  # per pixel, shared by channels; many below the 0.03 floor
+    expected = -scipy.stats.norm.logpdf(target, mean, np.maximum(sigma, 0.03)[:, None]).mean()
+    assert gaussian_nll(mean, target, sigma) == pytest.approx(expected, rel=1e-12)
+    assert gaussian_nll(mean, target, sigma, floor=1.0) == pytest.approx(
+        -scipy.stats.norm.logpdf(target, mean, 1.0).mean(), rel=1e-12)
+
+
+def test_auce_is_near_zero_when_calibrated_and_large_when_overconfident():
+    rng = np.random.default_rng(5)
+    mean = rng.random((100_000, 1))
+    sigma = rng.uniform(0.01, 0.1, 100_000)
+    target = mean + sigma[:, None] * rng.standard_normal((100_000, 1))
+    calibrated, coverage = auce(mean, target, sigma)
+    assert calibrated < 0.01
+    # the coverage of each interval by scipy's own interval
+    lo, hi = scipy.stats.norm.interval(1 - AUCE_ALPHAS[:, None], loc=mean[:, 0], scale=sigma)
+    assert coverage == pytest.approx(((target[:, 0] >= lo) & (target[:, 0] <= hi)).mean(1), abs=1e-9)
+    assert auce(mean, target, sigma / 3)[0] > 0.2 and auce(mean, target, sigma * 3)[0] > 0.2
+
+
+def test_correlations_against_scipy_with_ties():
+    rng = np.random.default_rng(6)
+    err = rng.integers(0, 20, 400).astype(float)  # many ties
+    unc = err + rng.integers(0, 10, 400)
+    r, rho = correlations(unc, err)
+    assert r == pytest.approx(scipy.stats.pearsonr(unc, err).statistic, rel=1e-10)
+    assert rho == pytest.approx(scipy.stats.spearmanr(unc, err).statistic, rel=1e-10)
+    assert math.isnan(correlations(np.ones(5), np.arange(5.0))[0])
+
+
+def test_bad_inputs_name_the_problem():
+    with pytest.raises(ValueError, match="equal-size"):
+        sparsification([1.0, 2.0], [1.0])
+    with pytest.raises(ValueError, match="finite"):
+        ause_max([1.0, float("nan")], [1.0, 2.0])
