@@ -86,6 +86,16 @@ def test_file_digests_are_cached_by_path_size_and_mtime(small_scene, tmp_path, m
     reads.clear()
     assert scene_fingerprint(copy).digest != first.digest
     assert [p.name for p in reads] == ["r_0.png"]  # only the changed file is read again
+    meta = copy / "transforms_test.json"  # the same size, other bytes, a later time: read again
+    text = meta.read_text()
+    swapped = text.replace("0", "#").replace("1", "0").replace("#", "1")
+    assert len(swapped) == len(text) and swapped != text
+    before = scene_fingerprint(copy).digest
+    meta.write_text(swapped)
+    import os
+    os.utime(meta, ns=(meta.stat().st_atime_ns, meta.stat().st_mtime_ns + 10_000_000))
+    reads.clear()
+    assert scene_fingerprint(copy).digest != before and [p.name for p in reads] == ["transforms_test.json"]
 
 
 def test_colmap_sources_are_the_model_and_the_image_folder_and_masks_only_when_read():

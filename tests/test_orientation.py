@@ -88,6 +88,16 @@ def test_one_estimate_that_fails_alone_is_no_warning():
     assert Orientation([0, 0, 1], "cameras", {}, {"cameras": 0.0, "pca": 31.0}).warning()
 
 
+def test_whichever_sign_a_fit_returns_the_normal_is_turned_towards_the_cameras():
+    from pipeline.data.orientation import _towards_cameras
+    cams, points = ring(), table_points()
+    for normal in (TRUE_UP, -TRUE_UP):
+        assert float(_towards_cameras(normal, cams, points) @ TRUE_UP) == pytest.approx(1.0)
+        assert float(_towards_cameras(normal, cams, None) @ TRUE_UP) == pytest.approx(1.0)  # by the cameras' up
+    below = ring(up=-TRUE_UP)  # cameras under the table: its normal points down, towards them
+    assert float(_towards_cameras(TRUE_UP, below, table_points(up=-TRUE_UP)) @ TRUE_UP) == pytest.approx(-1.0)
+
+
 def test_an_explicit_vector_and_bad_values():
     cams = ring()
     given = orientation(cams, None, [0, 0, 2])

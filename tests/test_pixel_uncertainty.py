@@ -86,6 +86,9 @@ def test_each_convention_equals_its_released_code(seed):
     assert ause_max(err, unc)[0] == pytest.approx(_aalto_ause(unc, err, False), abs=1e-12)
     assert ause_max(err ** 2, unc, root=True)[0] == pytest.approx(_aalto_ause(unc, err ** 2, True), abs=1e-12)
     assert ause_start(err, unc)[0] == pytest.approx(_3dgsu_ause(err, unc), abs=1e-12)
+    backwards = 1.0 - unc  # a map that ranks the worst pixels as the surest: its curve rises above the oracle's top
+    assert ause_max(err, backwards)[0] == pytest.approx(_aalto_ause(backwards, err, False), abs=1e-12)
+    assert ause_start(err, backwards)[0] == pytest.approx(_3dgsu_ause(err, backwards), abs=1e-12)
     assert ause_max(err, unc)[0] != pytest.approx(ause_start(err, unc)[0], abs=1e-3)  # two numbers, named apart
     assert len(START_FRACTIONS) == 100 and START_FRACTIONS[-1] == 0.999
 

@@ -23,9 +23,10 @@ def test_seeds_needed_are_g_powers(dz, n):
     assert paired_t_power(dz, n) >= 0.8 > paired_t_power(dz, n - 1)
 
 
-def test_the_power_is_the_t_tests_rejection_rate():
+@pytest.mark.parametrize("dz, n", [(0.7, 12), (2.0, 3)])  # 3 pairs: the degrees of freedom matter most
+def test_the_power_is_the_t_tests_rejection_rate(dz, n):
     rng = np.random.default_rng(0)
-    dz, n, trials = 0.7, 12, 20_000
+    trials = 20_000
     d = rng.normal(dz, 1.0, (trials, n))
     rejected = np.mean(ttest_rel(d, np.zeros_like(d), axis=1).pvalue < 0.05)
     assert rejected == pytest.approx(paired_t_power(dz, n), abs=0.01)
