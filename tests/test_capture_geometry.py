@@ -163,3 +163,62 @@ def test_capture_up_is_kept_and_read_with_the_scene(sideways_alexander, tmp_path
     (scene / "capture.json").write_text(json.dumps(doc))
     assert doc["orientation"]["choice"] == "pca" and doc["orientation"]["warning"] is None
     assert read_colmap(scene).info["up"] == "pca"
+
+
+class _FakeModel:
+    def __init__(self, names):
+        self.names = names
+
+    def reg_image_ids(self):
+        return list(range(len(self.names)))
+
+    def image(self, i):
+        return type("Image", (), {"name": self.names[i]})()
+
+    def write(self, folder):
+        (Path(folder) / "cameras.bin").write_bytes(b"")
+
+    def num_points3D(self):
+        return 1000
+
+    def compute_mean_reprojection_error(self):
+        return 0.5
+
+
+@pytest.mark.parametrize("verdict, matchers", [("folded or drifted", ["loop", "exhaustive"]), ("consistent", ["loop"])])
+def test_a_loop_matched_model_that_fails_the_check_is_matched_again_exhaustively(tmp_path, monkeypatch, verdict, matchers):
+    """The stages recorded instead of run: the second attempt happens only after a failed check,
+    and capture.json keeps the first attempt's figures."""
+    from pipeline.data import geometry_check
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(12):
+        Image.new("RGB", (64, 48), (k * 20, 40, 90)).save(photos / f"p{k:02d}.jpg")
+    monkeypatch.setattr(cap, "EXHAUSTIVE_UP_TO", 10)
+    called = []
+
+    def reconstruct(work, names, matcher, say, seconds):
+        called.append(matcher)
+        assert not (work / "kept").exists()  # a second attempt starts from a clean work folder
+        return _FakeModel(names), []
+
+    def undistort(work, model_dir, out, has_masks):
+        (out / "sparse" / "0").mkdir(parents=True)
+        (out / "images").mkdir()
+
+    def check(out, say=None, work=None):
+        return geometry_check.GeometryCheck(12, 3, 5, 3, 0.2, 0.3, 9.0, 12.0, verdict)
+    monkeypatch.setattr(cap, "reconstruct", reconstruct)
+    monkeypatch.setattr(cap, "undistort", undistort)
+    monkeypatch.setattr(geometry_check, "check_geometry", check)
+    monkeypatch.setattr(cap, "orient", lambda out, up, say: {"choice": up})
+    summary = cap.capture_scene(photos, tmp_path / "scene")
+    assert called == matchers
+    written = json.loads((tmp_path / "scene" / "capture.json").read_text())
+    if len(matchers) == 2:
+        assert written["matcher"] == "exhaustive" and written["pairs"] == 66 and written["geometry"] is None
+        assert written["first_try"]["matcher"] == "loop" and written["first_try"]["geometry"]["verdict"] == verdict
+    else:
+        assert written["matcher"] == "loop" and written["first_try"] is None and summary.geometry["verdict"] == verdict
+    with pytest.raises(CaptureError, match="--matcher: 'vocab' is not one of"):
+        cap.capture_scene(photos, tmp_path / "other", matcher="vocab")

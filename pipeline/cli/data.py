@@ -143,6 +143,9 @@ def main(argv=None) -> int:
     cap.add_argument("--max-size", type=int, default=800, help="longest side of the images SfM sees (default 800)")
     cap.add_argument("--frames", type=int, default=100, help="video: how many sharp frames to keep (default 100)")
     cap.add_argument("--keep-work", action="store_true", help="keep the SfM database and logs (OUT/_capture_work)")
+    cap.add_argument("--matcher", default="auto", choices=("auto", "exhaustive", "loop", "sequential"),
+                     help="auto (the default): exhaustive up to 200 photos, else the walk's neighbours plus a "
+                          "skeleton, matched again exhaustively when that model fails the geometry check")
     cap.add_argument("--up", default=None, metavar="METHOD|X,Y,Z",
                      help="the scene's up axis: cameras (the mean camera up; the default), plane (the points' "
                           "dominant plane), pca (the camera centres' smallest axis) or a vector; kept in capture.json")
@@ -166,7 +169,7 @@ def main(argv=None) -> int:
             from pipeline.data.capture import capture_scene
             made = capture_scene(args.source, args.out, args.max_size, args.frames,
                                  progress=lambda line: print(line, file=sys.stderr, flush=True),
-                                 keep_work=args.keep_work, up=args.up)
+                                 keep_work=args.keep_work, up=args.up, matcher=args.matcher)
             print(json.dumps(made.to_dict()))
             print(f"{made.registered}/{made.images} images registered, {made.points} points, "
                   f"{made.mean_reprojection_error_px:.2f} px mean reprojection error, {made.seconds['total']:.0f} s; "

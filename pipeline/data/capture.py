@@ -14,7 +14,8 @@
    progress during features and matching (``DatabaseProgress``);
    a model not matched exhaustively then gets the geometry check (``geometry_check``: an evenly
    spaced subset reconstructed with exhaustive matching and aligned to it), which says when the
-   model is folded or drifted;
+   model is folded or drifted; a loop-matched model that fails it is matched again exhaustively and
+   mapped anew (the first attempt kept in ``capture.json``'s ``first_try``);
 3. the kept model undistorted to a PINHOLE camera (COLMAP's image undistorter) into
    ``OUT/images`` + ``OUT/sparse/0``; masks that come with the photos (``masks/`` beside them, named
    like the photo, ``<stem>.png`` or ``<stem>_mask.png``: ``colmap.mask_path``) are undistorted the
@@ -68,6 +69,7 @@ class CaptureSummary:
     pairs: int | None = None        # image pairs matched (None: sequential video matching)
     geometry: dict | None = None    # the geometry check's figures (None: matched exhaustively)
     orientation: dict | None = None  # the up axis: the choice (--up), every estimate, their angles
+    first_try: dict | None = None   # a loop-matched attempt that failed the geometry check (then matched exhaustively)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -296,11 +298,71 @@ def orient(out: Path, up: str | list | None, say: Progress) -> dict:
     return {"choice": up, **found.to_dict()}
 
 
+MATCHERS = ("auto", "exhaustive", "loop", "sequential")
+
+
+@dataclass
+class Mapped:
+    """One structure-from-motion attempt: the kept model, the others' sizes, what registered."""
+
+    model: object
+    others: list[int]
+    registered: set[str]
+    missing: list[str]
+    geometry: dict | None = None
+
+
+def map_once(source: Path, work: Path, out: Path, names: list[str], matcher: str, masks: int, say: Progress,
+             seconds: dict) -> Mapped:
+    """Features, matching and mapping in ``work``, the kept model undistorted into ``out``, and, for
+    a model not matched exhaustively, the geometry check (``Mapped.geometry``)."""
+    model, others = reconstruct(work, names, matcher, say, seconds)
+    registered = {model.image(i).name for i in model.reg_image_ids()}
+    missing = [n for n in names if n not in registered]
+    if len(registered) * 2 < len(names):
+        raise CaptureError(f"{source}: only {len(registered)} of {len(names)} images registered in the largest "
+                           f"model (others: {others or 'none'}); not registered: {', '.join(missing[:20])}"
+                           + (" ..." if len(missing) > 20 else ""))
+    model_dir = work / "kept"
+    model_dir.mkdir()
+    model.write(model_dir)
+    t = time.perf_counter()
+    say(f"undistorting {len(registered)} images{' and masks' if masks else ''} to PINHOLE ...")
+    undistort(work, model_dir, out, masks > 0)
+    seconds["undistortion"] = round(time.perf_counter() - t, 1)
+    mapped = Mapped(model, others, registered, missing)
+    if matcher != "exhaustive":  # a model matched along the walk may be folded: check it
+        from pipeline.data.geometry_check import check_geometry
+        t = time.perf_counter()
+        say("geometry check: an evenly spaced subset reconstructed with exhaustive matching ...")
+        check = check_geometry(out, say=say, work=work / "geometry")
+        seconds["geometry_check"] = round(time.perf_counter() - t, 1)
+        say(("warning: the model is FOLDED OR DRIFTED: " if check.folded else "") + check.line())
+        mapped.geometry = check.to_dict()
+    return mapped
+
+
+def retry_exhaustive(work: Path, out: Path) -> Path:
+    """Make room for a second, exhaustive attempt: the first attempt's database, models and
+    undistorted output moved aside (into ``work/loop_attempt``); the copied inputs stay."""
+    aside = work / "loop_attempt"
+    aside.mkdir()
+    for name in ("database.db", "sparse", "kept", "undistorted", "geometry", "pairs.txt", "mask_undistortion"):
+        if (work / name).exists():
+            shutil.move(str(work / name), str(aside / name))
+    for name in ("images", "sparse", "masks"):
+        shutil.rmtree(out / name, ignore_errors=True)
+    return aside
+
+
 def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, frames: int = 100,
                   progress: Progress | None = None, keep_work: bool = False,
-                  up: str | list | None = None) -> CaptureSummary:
+                  up: str | list | None = None, matcher: str = "auto") -> CaptureSummary:
     """Reconstruct ``source`` (a photo folder or a video) into the COLMAP scene ``out``; ``up``: the
-    scene's up axis (``pipeline.data.orientation``: a method or a vector; None: the cameras')."""
+    scene's up axis (``pipeline.data.orientation``: a method or a vector; None: the cameras');
+    ``matcher``: auto (exhaustive up to ``EXHAUSTIVE_UP_TO`` photos, else loop, sequential for a
+    video; a loop-matched model that fails the geometry check is matched again exhaustively) or one
+    of exhaustive, loop, sequential (no second attempt)."""
     from pipeline.data.orientation import parse_up
     source, out = Path(source), Path(out)
     say = progress or (lambda line: None)
@@ -308,6 +370,8 @@ def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, fram
         up = parse_up(up)
     except ValueError as err:
         raise CaptureError(f"--up: {err}") from None
+    if matcher not in MATCHERS:
+        raise CaptureError(f"--matcher: {matcher!r} is not one of {', '.join(MATCHERS)}")
     if out.exists() and any(out.iterdir()):
         raise CaptureError(f"{out}: the output folder exists and is not empty (choose a new --out)")
     if max_size < 64:
@@ -316,32 +380,20 @@ def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, fram
     work = out / "_capture_work"
     seconds: dict[str, float] = {}
     start = time.perf_counter()
+    first_try = None
     try:
-        names, matcher, masks = prepare_inputs(source, work, max_size, frames, say)
+        names, chosen, masks = prepare_inputs(source, work, max_size, frames, say)
+        chosen = chosen if matcher == "auto" else matcher
         seconds["inputs"] = round(time.perf_counter() - start, 1)
-        model, others = reconstruct(work, names, matcher, say, seconds)
-        registered = {model.image(i).name for i in model.reg_image_ids()}
-        missing = [n for n in names if n not in registered]
-        if len(registered) * 2 < len(names):
-            raise CaptureError(f"{source}: only {len(registered)} of {len(names)} images registered in the largest "
-                               f"model (others: {others or 'none'}); not registered: {', '.join(missing[:20])}"
-                               + (" ..." if len(missing) > 20 else ""))
-        model_dir = work / "kept"
-        model_dir.mkdir()
-        model.write(model_dir)
-        t = time.perf_counter()
-        say(f"undistorting {len(registered)} images{' and masks' if masks else ''} to PINHOLE ...")
-        undistort(work, model_dir, out, masks > 0)
-        seconds["undistortion"] = round(time.perf_counter() - t, 1)
-        geometry = None
-        if matcher != "exhaustive":  # a model matched along the walk may be folded: check it
-            from pipeline.data.geometry_check import check_geometry
-            t = time.perf_counter()
-            say("geometry check: an evenly spaced subset reconstructed with exhaustive matching ...")
-            check = check_geometry(out, say=say, work=work / "geometry")
-            seconds["geometry_check"] = round(time.perf_counter() - t, 1)
-            say(("warning: the model is FOLDED OR DRIFTED: " if check.folded else "") + check.line())
-            geometry = check.to_dict()
+        mapped = map_once(source, work, out, names, chosen, masks, say, seconds)
+        if matcher == "auto" and chosen == "loop" and mapped.geometry["verdict"] != "consistent":
+            first_try = {"matcher": "loop", "pairs": pair_count(names, "loop"), "registered": len(mapped.registered),
+                         "geometry": mapped.geometry, "seconds": dict(seconds)}
+            say(f"the loop-matched model failed the geometry check: matching every pair "
+                f"({pair_count(names, 'exhaustive')} pairs) and mapping again ...")
+            retry_exhaustive(work, out)
+            chosen = "exhaustive"
+            mapped = map_once(source, work, out, names, chosen, masks, say, seconds)
     except BaseException:
         if not keep_work:
             shutil.rmtree(out, ignore_errors=True)
@@ -350,9 +402,10 @@ def capture_scene(source: str | Path, out: str | Path, max_size: int = 800, fram
         shutil.rmtree(work, ignore_errors=True)
     seconds["total"] = round(time.perf_counter() - start, 1)
     oriented = orient(out, up, say)
-    summary = CaptureSummary(str(source), str(out), len(names), len(registered), model.num_points3D(),
+    model = mapped.model
+    summary = CaptureSummary(str(source), str(out), len(names), len(mapped.registered), model.num_points3D(),
                              round(float(model.compute_mean_reprojection_error()), 4), "SIMPLE_RADIAL -> PINHOLE",
-                             matcher, seconds, missing, others, masks, pair_count(names, matcher), geometry,
-                             oriented)
+                             chosen, seconds, mapped.missing, mapped.others, masks, pair_count(names, chosen),
+                             mapped.geometry, oriented, first_try)
     (out / "capture.json").write_text(json.dumps(summary.to_dict(), indent=1) + "\n")
     return summary
