@@ -35,3 +35,20 @@ def test_the_power_is_the_t_tests_rejection_rate(dz, n):
 def test_no_effect_needs_no_finite_number_of_seeds():
     assert seeds_needed(None) is None and seeds_needed(0.0) is None and seeds_needed(0.01) is None
     assert math.isclose(paired_t_power(0.0, 50), 0.05, abs_tol=1e-9)
+
+
+def test_the_paired_table_shows_the_effect_and_the_seeds_it_needs():
+    import pandas as pd
+
+    from pipeline.report.stats import paired_comparisons
+    from pipeline.report.tables import PairedTable, paired_to_markdown
+    gopre = [20.0, 21.0, 22.0, 20.5]
+    other = [19.0, 20.5, 20.0, 20.4]  # differences +1.0 +0.5 +2.0 +0.1
+    rows = [{"method": m, "dataset": "d", "scene": "s", "seed": k, "setting": "", "psnr": v}
+            for m, values in (("gopre", gopre), ("other", other)) for k, v in enumerate(values)]
+    (c,) = paired_comparisons(pd.DataFrame(rows), "other", "psnr")
+    d = np.array(gopre) - np.array(other)
+    assert c.effect_size == pytest.approx(d.mean() / d.std(ddof=1)) and c.seeds_needed == seeds_needed(c.effect_size)
+    text = paired_to_markdown(PairedTable("t", "other", ["psnr"], {"gopre": {"psnr": c}}))
+    assert "final PSNR d_z (seeds for 80% power)" in text
+    assert f"| {c.effect_size:+.2f} ({c.seeds_needed}) |" in text

@@ -4,7 +4,8 @@ against a reference method with bootstrap intervals and wins/losses.
 A pair is one (dataset, scene, seed, setting) on which both the method and the reference finished:
 the same scene, the same initial views and the same seed, so the difference removes what the
 seed shares between methods. The interval is scipy's BCa bootstrap over pairs (seeded, so a
-report is reproducible), with the Wilcoxon signed-rank p-value beside it.
+report is reproducible), with the Wilcoxon signed-rank p-value, the effect size d_z and the seeds a
+paired t-test would need for 80% power at it (``power``) beside it.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 from scipy.stats import bootstrap, wilcoxon
+
+from pipeline.report.power import effect_size, seeds_needed
 
 PAIR_KEYS = ("dataset", "scene", "seed", "setting")
 BOOTSTRAP_SAMPLES = 10_000
@@ -98,6 +101,8 @@ class PairedComparison:
     losses: int
     ties: int
     wilcoxon_p: float | None = None  # two-sided signed-rank test of the differences
+    effect_size: float | None = None  # d_z = mean / sd of the differences (``power``)
+    seeds_needed: int | None = None   # pairs a paired t-test needs for 80% power at d_z (None: > MAX_SEEDS)
 
 
 def default_reference(methods: list[str], reference: str | None = None) -> str | None:
@@ -139,9 +144,10 @@ def paired_comparisons(final: pd.DataFrame, reference: str, metric: str = "psnr"
         if d.size == 0:
             continue
         low, high = bootstrap_interval(d)
+        dz = effect_size(d)
         out.append(PairedComparison(method, reference, metric, int(d.size), float(d.mean()), low, high,
                                     int((d > TIE_DB).sum()), int((d < -TIE_DB).sum()),
-                                    int((np.abs(d) <= TIE_DB).sum()), wilcoxon_p(d)))
+                                    int((np.abs(d) <= TIE_DB).sum()), wilcoxon_p(d), dz, seeds_needed(dz)))
     return out
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from pipeline.report.power import MAX_SEEDS
 from pipeline.report.stats import verdict
 
 LOWER_IS_BETTER = {"lpips", "per_candidate_ms", "selection_seconds", "selection_cpu_seconds",
@@ -246,14 +247,22 @@ def _p_value(p: float | None) -> str:
     return MISSING if p is None else (f"{p:.3f}" if p >= 0.001 else "<0.001")
 
 
+def _effect(c) -> str:
+    """'d_z (seeds for 80% power)': '+1.32 (7)', '+0.01 (> 10000)', or n/a without a spread."""
+    if c.effect_size is None:
+        return MISSING
+    seeds = str(c.seeds_needed) if c.seeds_needed is not None else f"> {MAX_SEEDS}"
+    return f"{_signed(c.effect_size, 2)} ({seeds})"
+
+
 def _paired_cells(c, metric: str) -> list[str]:
-    """[difference with its interval, W/L/T, Wilcoxon p, verdict]."""
+    """[difference with its interval, W/L/T, Wilcoxon p, effect size (seeds needed), verdict]."""
     if c is None:
-        return [MISSING, MISSING, MISSING, MISSING]
+        return [MISSING, MISSING, MISSING, MISSING, MISSING]
     d = DIGITS.get(metric, 2)
     interval = f"[{_signed(c.low, d)}, {_signed(c.high, d)}]" if c.n >= 2 else f"[{MISSING}]"  # 1 pair: no interval
     return [f"{_signed(c.mean_difference, d)} {interval}",
-            f"{c.wins}/{c.losses}/{c.ties}", _p_value(c.wilcoxon_p), verdict(c)]
+            f"{c.wins}/{c.losses}/{c.ties}", _p_value(c.wilcoxon_p), _effect(c), verdict(c)]
 
 
 PAIRED_LABELS = {"psnr": "final PSNR", "psnr_auc": "PSNR-vs-views area"}
@@ -263,7 +272,8 @@ def paired_to_markdown(table: PairedTable) -> str:
     header = ["method", "pairs"]
     for m in table.metrics:
         label = PAIRED_LABELS.get(m, m)
-        header += [f"Δ {label} (dB) [95% CI]", f"{label} W/L/T", f"{label} Wilcoxon p", f"{label} verdict"]
+        header += [f"Δ {label} (dB) [95% CI]", f"{label} W/L/T", f"{label} Wilcoxon p",
+                   f"{label} d_z (seeds for 80% power)", f"{label} verdict"]
     lines = [f"### {table.title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for method, by_metric in table.rows.items():
         n = max((c.n for c in by_metric.values() if c is not None), default=0)
@@ -274,7 +284,10 @@ def paired_to_markdown(table: PairedTable) -> str:
     lines += ["", f"Δ = method − {table.reference} over pairs (same dataset, scene, seed and setting; "
               "both finished); 95% BCa bootstrap interval of the mean over pairs (scipy); Wilcoxon p = the "
               "two-sided signed-rank test of the differences; W/L/T = "
-              f"pairs where the method is better / worse / equal. The verdict is 'better' only when "
+              f"pairs where the method is better / worse / equal; d_z = the mean difference over its standard "
+              "deviation (paired effect size), in brackets the pairs a two-sided paired t-test at 0.05 would need "
+              "to detect it with 80% power (noncentral t): a 'no clear difference' with a small number there "
+              "means too few seeds, with a large one no effect worth seeds. The verdict is 'better' only when "
               "the interval excludes zero, and none is drawn from fewer than 5 pairs."]
     lines += [f"Note: {n}" for n in table.notes]
     return "\n".join(lines) + "\n"
