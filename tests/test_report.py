@@ -507,3 +507,20 @@ def test_a_grid_of_records_without_a_setting_column_is_one_column_per_method(tmp
             for m, sweep in (("gopre", "a"), ("random", "b"))]
     frame = pd.DataFrame(rows).drop(columns="setting", errors="ignore")
     assert set(grid_images(tmp_path, frame, "renders")) == {"gopre", "random"}
+
+
+def test_psnr_against_cumulative_selection_time_by_hand(tmp_path):
+    """A round's point sits at the selection seconds its job spent before it was evaluated; the
+    line is the mean over seeds of both coordinates."""
+    from pipeline.report.figures import cumulative_selection_seconds, psnr_vs_selection_time
+    rows = []
+    for seed, (times, psnrs) in enumerate((([1.0, 2.0, None], [10.0, 11.0, 12.0]), ([3.0, 4.0, None], [12.0, 13.0, 14.0]))):
+        for k, (t, p) in enumerate(zip(times, psnrs)):
+            rows.append({"sweep": "s", "config_hash": f"h{seed}", "scene": "lego", "setting": "", "method": "gopre",
+                         "num_views": 2 + k, "psnr": p, "selection_cpu_seconds": t, "selection_seconds": 99.0})
+    rounds = pd.DataFrame(rows).iloc[::-1]  # rows in any order
+    assert cumulative_selection_seconds(rounds, "selection_cpu_seconds").sort_index().tolist() == [0, 1, 3, 0, 3, 7]
+    series = psnr_vs_selection_time(rounds, tmp_path / "t.png")
+    assert series["lego"]["gopre"] == ([0.0, 2.0, 5.0], [11.0, 12.0, 13.0])
+    assert (tmp_path / "t.png").exists()
+    assert psnr_vs_selection_time(rounds.drop(columns=["selection_cpu_seconds", "selection_seconds"]), tmp_path / "n.png") is None

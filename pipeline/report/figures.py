@@ -24,9 +24,9 @@ def save_figure(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple[list, list]]]:
-    """One panel per scene and setting (sweep-axis values, e.g. the protocol), one line per method
-    (mean over seeds) of PSNR against #views; panels in rows of at most three."""
+def _curves(rounds: pd.DataFrame, path: Path, points, xlabel: str) -> dict[str, dict[str, tuple[list, list]]]:
+    """One panel per scene and setting (sweep-axis values, e.g. the protocol), one line per method of
+    ``points(rows of one method in one panel) -> (x, y)``; panels in rows of at most three."""
     setting = rounds["setting"].fillna("") if "setting" in rounds else pd.Series("", index=rounds.index)
     rounds = rounds.assign(panel=[f"{sc}, {st}" if st else sc for sc, st in zip(rounds["scene"], setting)])
     panels = list(dict.fromkeys(rounds["panel"]))
@@ -43,12 +43,11 @@ def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple
             data = part[part["method"] == method]
             if data.empty:
                 continue
-            curve = data.groupby("num_views")["psnr"].mean()
-            x, y = curve.index.tolist(), curve.tolist()
+            x, y = points(data)
             series[panel][method] = (x, y)
             ax.plot(x, y, marker="o", ms=3, label=method, color=colour[method])
         ax.set_title(panel, fontsize=9)
-        ax.set_xlabel("number of views")
+        ax.set_xlabel(xlabel)
         ax.set_ylabel("PSNR on the curve's test views (dB)", fontsize=8)
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
@@ -58,6 +57,46 @@ def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple
     fig.tight_layout()
     save_figure(fig, path)
     return series
+
+
+def psnr_vs_views(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple[list, list]]]:
+    """PSNR against #views, one line per method (mean over seeds), one panel per scene and setting."""
+    def points(data):
+        curve = data.groupby("num_views")["psnr"].mean()
+        return curve.index.tolist(), curve.tolist()
+    return _curves(rounds, path, points, "number of views")
+
+
+SELECTION_TIME_COLUMNS = ("selection_cpu_seconds", "selection_seconds")  # the first one recorded is used
+
+
+def selection_time_column(rounds: pd.DataFrame) -> str | None:
+    return next((c for c in SELECTION_TIME_COLUMNS if c in rounds and rounds[c].notna().any()), None)
+
+
+def cumulative_selection_seconds(rounds: pd.DataFrame, column: str) -> pd.Series:
+    """Per round row, the selection seconds its job spent before the round was evaluated: the sum of
+    ``column`` over the job's earlier rounds (a round's selection comes after its evaluation)."""
+    keys = [k for k in ("sweep", "config_hash") if k in rounds]
+    ordered = rounds.sort_values([*keys, "num_views"], kind="stable")
+    spent = ordered[column].fillna(0.0)
+    before = spent.groupby([ordered[k] for k in keys]).cumsum() - spent
+    return before.reindex(rounds.index)
+
+
+def psnr_vs_selection_time(rounds: pd.DataFrame, path: Path) -> dict[str, dict[str, tuple[list, list]]] | None:
+    """PSNR against the cumulative selection time (CPU seconds where recorded, else wall), one point
+    per round: the mean over seeds of both; None when no selection time was recorded."""
+    column = selection_time_column(rounds)
+    if column is None:
+        return None
+    rounds = rounds.assign(spent=cumulative_selection_seconds(rounds, column))
+
+    def points(data):
+        curve = data.groupby("num_views")[["spent", "psnr"]].mean()
+        return curve["spent"].tolist(), curve["psnr"].tolist()
+    label = "cumulative selection CPU seconds" if column == "selection_cpu_seconds" else "cumulative selection seconds"
+    return _curves(rounds, path, points, label)
 
 
 def sparsification(curves: pd.DataFrame, ause: pd.DataFrame, path: Path) -> dict[str, tuple[list, list]]:

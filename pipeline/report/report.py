@@ -323,6 +323,9 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
     rounds = finished(frame, "round", "episode")
     if not rounds.empty:
         made["psnr_vs_views.png"] = figures.psnr_vs_views(rounds, fig_dir / "psnr_vs_views.png")
+        timed = figures.psnr_vs_selection_time(rounds, fig_dir / "psnr_vs_selection_time.png")
+        if timed is not None:
+            made["psnr_vs_selection_time.png"] = timed
     curves = finished(frame, "sparsification", "uncertainty")
     if not curves.empty:
         made["sparsification.png"] = figures.sparsification(
