@@ -11,7 +11,7 @@
    each photo with its ``NEIGHBOURS`` next in name (walk) order plus every pair among an evenly
    spaced skeleton (every ``SKELETON_EVERY``-th photo), which closes the loop of a walk around the
    object without a vocabulary tree (``loop_pairs``); sequential for video frames. A line of
-   progress during features and matching (``DatabaseProgress``);
+   progress during features and matching (``LogProgress``, from COLMAP's own log);
    a model not matched exhaustively then gets the geometry check (``geometry_check``: an evenly
    spaced subset reconstructed with exhaustive matching and aligned to it), which says when the
    model is folded or drifted; a loop-matched model that fails it is matched again exhaustively and
@@ -28,6 +28,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
@@ -154,36 +155,42 @@ def loop_pairs(names: list[str], neighbours: int = NEIGHBOURS, skeleton_every: i
     return [(ordered[i], ordered[j]) for i, j in sorted(pairs)]
 
 
-class DatabaseProgress:
-    """A line every ``PROGRESS_SECONDS`` while COLMAP fills its database: how many images have
-    features, or how many pairs have been matched, out of the total (read from the SQLite file in a
-    background thread; COLMAP's own per-image log goes to files)."""
+class LogProgress:
+    """A line every ``PROGRESS_SECONDS`` while COLMAP extracts or matches: how far its own log says it
+    is (``Processed file [k/n]``, ``Processing block [...]``), read from its log files in a background
+    thread. Never the database: a second SQLite library in the same process breaks SQLite's locking
+    (each copy's POSIX locks release the other's) and crashed pycolmap with SIGBUS while matching."""
 
-    QUERIES = {"features": "SELECT COUNT(*) FROM keypoints", "matching": "SELECT COUNT(*) FROM two_view_geometries"}
+    PATTERNS = {"features": re.compile(r"Processed file \[(\d+/\d+)\]"),
+                "matching": re.compile(r"Processing block \[([\d/, ]+)\]")}
 
-    def __init__(self, db: Path, stage: str, total: int, say: Progress, unit: str):
+    def __init__(self, log_dir: Path, stage: str, say: Progress, total: str):
         import threading
-        self.db, self.stage, self.total, self.say, self.unit = db, stage, total, say, unit
+        self.log_dir, self.stage, self.say, self.total = log_dir, stage, say, total
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
 
-    def count(self) -> int | None:
-        import sqlite3
-        try:
-            with sqlite3.connect(f"file:{self.db}?mode=ro", uri=True, timeout=1.0) as con:
-                return int(con.execute(self.QUERIES[self.stage]).fetchone()[0])
-        except sqlite3.Error:  # not created yet, or locked for a moment
+    def last(self) -> str | None:
+        """The stage's last progress mark in the newest log file (None before the first)."""
+        logs = sorted(self.log_dir.glob("*INFO*"), key=lambda p: p.stat().st_mtime) if self.log_dir.is_dir() else []
+        if not logs:
             return None
+        try:
+            text = logs[-1].read_text(errors="replace")[-200_000:]
+        except OSError:
+            return None
+        found = self.PATTERNS[self.stage].findall(text)
+        return found[-1] if found else None
 
     def run(self) -> None:
         start = time.perf_counter()
         while not self.stop.wait(PROGRESS_SECONDS):
-            done = self.count()
-            if done is not None:
-                self.say(f"{self.stage}: {min(done, self.total)}/{self.total} {self.unit} "
-                         f"({time.perf_counter() - start:.0f} s)")
+            mark = self.last()
+            if mark is not None:
+                what = "images" if self.stage == "features" else "block"
+                self.say(f"{self.stage}: {what} {mark} ({self.total}, {time.perf_counter() - start:.0f} s)")
 
-    def __enter__(self) -> "DatabaseProgress":
+    def __enter__(self) -> "LogProgress":
         self.thread.start()
         return self
 
@@ -212,14 +219,15 @@ def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, secon
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "SIMPLE_RADIAL"
     say(f"features: SIFT on {len(names)} images ...")
-    with DatabaseProgress(db, "features", len(names), say, "images"):
+    logs = work / "colmap_logs"
+    with LogProgress(logs, "features", say, f"{len(names)} images"):
         pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, device=pycolmap.Device.cpu)
     seconds["features"] = round(time.perf_counter() - start, 1)
     start = time.perf_counter()
     pairs = pair_count(names, matcher)
     say(f"matching: {matcher} ({pairs if pairs is not None else 'neighbouring'} pairs) ...")
-    with DatabaseProgress(db, "matching", pairs or 0, say, "pairs") if pairs else _nothing():
+    with LogProgress(logs, "matching", say, f"{pairs} pairs" if pairs else "neighbouring pairs"):
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
         elif matcher == "loop":
@@ -255,14 +263,6 @@ def pair_count(names: list[str], matcher: str) -> int | None:
     if matcher == "exhaustive":
         return len(names) * (len(names) - 1) // 2
     return len(loop_pairs(names)) if matcher == "loop" else None
-
-
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        pass
 
 
 def undistort(work: Path, model_dir: Path, out: Path, has_masks: bool) -> None:
