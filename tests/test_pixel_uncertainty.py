@@ -139,3 +139,22 @@ def test_bad_inputs_name_the_problem():
         sparsification([1.0, 2.0], [1.0])
     with pytest.raises(ValueError, match="finite"):
         ause_max([1.0, float("nan")], [1.0, 2.0])
+
+
+def test_the_final_model_record_ranks_and_calibrates_as_its_parts_say():
+    """A variance equal to each channel's squared error ranks RMSE (and MAE per pixel) perfectly."""
+    import torch
+
+    from pipeline.eval.model_uncertainty import pixel_uncertainty
+    gen = torch.Generator().manual_seed(0)
+    truth = torch.rand(2, 12, 16, 3, generator=gen, dtype=torch.float64)
+    render = (truth + 0.1 * torch.randn(2, 12, 16, 3, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    exact = (render - truth) ** 2
+    record = pixel_uncertainty(truth, render, exact)
+    assert record.views == 2 and record.ause_rmse_max == pytest.approx(0.0, abs=1e-12)
+    assert record.ause_rmse_start == pytest.approx(0.0, abs=1e-12)
+    assert record.pearson > 0.5 and record.spearman > 0.5
+    flat = pixel_uncertainty(truth, render, torch.full_like(exact, 0.01))  # the error's own scale, no ranking
+    assert flat.ause_mae_max > record.ause_mae_max and flat.spearman != flat.spearman  # constant: NaN
+    with pytest.raises(ValueError, match=r"\[T, H, W, 3\] alike"):
+        pixel_uncertainty(truth, render, exact[..., 0])

@@ -61,6 +61,23 @@ def test_every_episode_writes_a_result_valid_under_the_schema(sweep):
         assert sorted(p["test_id"] for p in doc["final"]["per_image"]) == sorted(doc["views"]["test_ids"])
 
 
+def test_every_episode_records_its_final_models_pixel_uncertainty(sweep, tmp_path):
+    """unc_* columns from the job's rendered test views, and their table in the report."""
+    import math
+
+    from pipeline.experiment.records import RecordsFile
+    out, _ = sweep
+    finals = RecordsFile(out).frame.query("kind == 'final'")
+    for column in ("unc_ause_mae_max", "unc_ause_mae_start", "unc_ause_rmse_max", "unc_ause_dssim_start",
+                   "unc_nll", "unc_auce", "unc_pearson", "unc_spearman"):
+        assert finals[column].map(math.isfinite).all(), column
+    assert (finals["unc_views"] >= 1).all() and finals["unc_pearson"].between(-1, 1).all()
+    assert finals["unc_auce"].between(0, 1).all()
+    assert report_main([str(out), "--out", str(tmp_path / "r"), "--no-images"]) == 0
+    table = (tmp_path / "r" / "table.md").read_text()
+    assert "pixel-level uncertainty of the final model" in table and "AUSE MAE (start-norm.)" in table
+
+
 def test_the_sweep_uses_exactly_the_benchmark_definition(sweep):
     out, bench = sweep
     definition = json.loads(bench.read_text())

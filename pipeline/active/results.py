@@ -96,6 +96,9 @@ class FinalMetrics:
     nonfinite_steps: int = 0
     metrics_version: int = METRICS_VERSION
     ssim_source: str = "episode"             # or "model.ply": filled in afterwards from the final model
+    # the final model's pixel-level uncertainty on the job's rendered test views
+    # (``pipeline.eval.model_uncertainty``; None: not measured, e.g. a job rendering no view)
+    uncertainty: dict | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -78,6 +78,15 @@ def ssim_value(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> float:
     """3DGS's SSIM of one view (zero-padded windows, the mean over all pixels and channels), in
     float64: pred, gt [H, W, 3] in [0, 1] (pred is clamped); with ``mask`` [H, W], the SSIM map's
     mean over the masked-in pixels only."""
+    ssim = ssim_map(pred, gt)
+    if mask is None:
+        return float(ssim.mean())
+    weight = _mask_weight(mask, pred).cpu().numpy()
+    return float((ssim * weight[..., None]).sum() / (3 * weight.sum()))
+
+
+def ssim_map(pred: Tensor, gt: Tensor) -> np.ndarray:
+    """3DGS's per-pixel SSIM [H, W, 3] float64 (its mean is ``ssim_value``)."""
     _check_pair(pred, gt)
     x = pred.detach().clamp(0, 1).double().cpu().numpy()
     y = gt.detach().double().cpu().numpy()
@@ -88,11 +97,7 @@ def ssim_value(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> float:
     mu_x, mu_y, exx, eyy, exy = local
     sxx, syy, sxy = exx - mu_x ** 2, eyy - mu_y ** 2, exy - mu_x * mu_y
     c1, c2 = 0.01 ** 2, 0.03 ** 2
-    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
-    if mask is None:
-        return float(ssim_map.mean())
-    weight = _mask_weight(mask, pred).cpu().numpy()
-    return float((ssim_map * weight[..., None]).sum() / (3 * weight.sum()))
+    return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2))
 
 
 def ssim_skimage_value(pred: Tensor, gt: Tensor) -> float:

@@ -32,7 +32,8 @@ from pipeline.experiment.build import MISSING_DATA, uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress
-from pipeline.fisher.variance import variance_maps
+from pipeline.eval.model_uncertainty import pixel_uncertainty
+from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
 from pipeline.experiment.spec import Job
 
@@ -102,14 +103,6 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     return out
 
 
-def uncertainty_strips(g, background: torch.Tensor, taken, cams, truth: torch.Tensor,
-                     preds: torch.Tensor) -> list[torch.Tensor]:
-    """One [H, 4W, 3] row per view of ``cams``: ground truth | render | squared error | per-pixel
-    predictive variance of the ``taken`` views' posterior, each map on its own colour scale."""
-    maps = variance_maps(g, taken, cams, background)
-    return [uncertainty_row(truth[i], preds[i], maps[i].to(preds)) for i in range(len(cams))]
-
-
 def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
     """[H, W, 3] ground truth and render, [H, W] variance -> [H, 4W, 3]."""
     error = (render - truth).square().sum(-1)
@@ -172,11 +165,14 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
                  BENCHMARK_RESULT: json.dumps(result_document(job, scene, cfg, result, every), indent=1).encode()}
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
-    # the final model's uncertainty against its error on the same views (MLflow artifacts)
+    # the final model's uncertainty against its error on the same views (MLflow artifacts, and the
+    # pixel-level metrics of pipeline.eval.model_uncertainty in the final metrics)
     taken = result.taken_cameras(scene.split(result.pool_split).cameras)
-    strips = uncertainty_strips(result.gaussians, background, taken, views.cameras[shown], truth, preds)
-    for view, row in zip(shown, strips):
-        artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(row)
+    if shown:
+        variance = channel_variance_maps(result.gaussians, taken, views.cameras[shown], background).to(preds)
+        for view, truth_k, pred_k, var_k in zip(shown, truth, preds, variance):
+            artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(uncertainty_row(truth_k, pred_k, var_k.sum(-1)))
+        result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 

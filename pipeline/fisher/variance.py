@@ -24,5 +24,11 @@ def variance_maps(gaussians: Gaussians, taken: Cameras, cameras: Cameras, backgr
                   lam: float = POSTERIOR_LAMBDA) -> Tensor:
     """Per-pixel predictive variance [C, H, W] of ``cameras`` (summed over the colour channels)
     under the posterior of the ``taken`` views."""
+    return channel_variance_maps(gaussians, taken, cameras, background, lam).sum(-1)
+
+
+def channel_variance_maps(gaussians: Gaussians, taken: Cameras, cameras: Cameras, background: Tensor,
+                          lam: float = POSTERIOR_LAMBDA) -> Tensor:
+    """Per-pixel predictive variance [C, H, W, 3] of ``cameras``, per colour channel."""
     _, s = taken_views_posterior(gaussians, taken, background, lam=lam)
-    return predictive_variance_maps(gaussians, cameras, s, background).sum(-1)
+    return predictive_variance_maps(gaussians, cameras, s, background)

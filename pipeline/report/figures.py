@@ -79,7 +79,7 @@ def cumulative_selection_seconds(rounds: pd.DataFrame, column: str) -> pd.Series
     ``column`` over the job's earlier rounds (a round's selection comes after its evaluation)."""
     keys = [k for k in ("sweep", "config_hash") if k in rounds]
     ordered = rounds.sort_values([*keys, "num_views"], kind="stable")
-    spent = ordered[column].fillna(0.0)
+    spent = pd.to_numeric(ordered[column], errors="coerce").fillna(0.0)
     before = spent.groupby([ordered[k] for k in keys]).cumsum() - spent
     return before.reindex(rounds.index)
 

@@ -17,8 +17,8 @@ from pipeline.report import falls, figures, search
 from pipeline.report.identity import check_rows, identity_markdown
 from pipeline.report.rows import finished
 from pipeline.report.stats import default_reference, paired_comparisons, with_curve_area
-from pipeline.report.tables import (PairedTable, Table, build_table, paired_to_latex, paired_to_markdown,
-                                    to_latex, to_markdown)
+from pipeline.report.tables import (UNCERTAINTY_METRICS, PairedTable, Table, build_table, paired_to_latex,
+                                    paired_to_markdown, to_latex, to_markdown)
 
 from pipeline.interchange.layout import RECORDS  # the one spelling of the records file
 
@@ -166,6 +166,7 @@ def episode_tables(frame: pd.DataFrame, title: str, reference: str | None = None
                             ["psnr", "psnr_auc", "ssim", "lpips"], methods)
         tables.append(table)
         tables += selection_time_table(final, title, methods)
+        tables += uncertainty_table(final, title, methods)
     note = missing_ssim_note(final)
     if note:
         table.notes.append(note)
@@ -196,6 +197,28 @@ def setting_tables(final: pd.DataFrame, title: str, methods: list[str], settings
         return []
     return [PairedTable(f"{title}: each setting against {baseline}, method by method", baseline,
                         PAIRED_METRICS, rows)]
+
+
+def uncertainty_table(final: pd.DataFrame, title: str, methods: list[str]) -> list[Table]:
+    """The final model's pixel-level uncertainty per method (mean ± std over episodes), when the
+    records have it (``pipeline.eval.model_uncertainty``)."""
+    present = [m for m in UNCERTAINTY_METRICS if m in final and final[m].notna().any()]
+    if not present:
+        return []
+    table = build_table(final.rename(columns={"method": "Method"}), f"{title}: pixel-level uncertainty of the final model",
+                        "Method", None, present, methods)
+    table.notes.append(
+        "The map is each final model's Laplace predictive variance (S = 1 / (H_train + lambda) of the views its "
+        "strategy took, per channel), on the job's rendered test views: a variance, so NLL and AUCE apply; it is the "
+        "same recipe for every method, so these compare the calibration of the models the strategies built, not the "
+        "strategies' own scores. AUSE: the area between the error of the pixels kept after removing the most "
+        "uncertain fraction and the oracle's, for MAE (absolute error summed over channels), RMSE and DSSIM; "
+        "max-norm. = both curves divided by their largest value over 100 fractions in [0, 1) (FisherRF, WarpRF, "
+        "AaltoML's released code), start-norm. = divided by the error of all pixels, fractions in [0, 0.999], "
+        "zero-error pixels dropped (3DGS-Uncertainty's). NLL: Gaussian, sigma floored at 0.03 (AaltoML). AUCE: "
+        "the area under |coverage - (1 - alpha)| over alpha in 0.01 ... 0.99. Pearson and Spearman: summed variance "
+        "against MAE. Lower is better for AUSE, NLL and AUCE, higher for the correlations.")
+    return [table]
 
 
 def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) -> list[Table]:
