@@ -158,3 +158,14 @@ def test_the_final_model_record_ranks_and_calibrates_as_its_parts_say():
     assert flat.ause_mae_max > record.ause_mae_max and flat.spearman != flat.spearman  # constant: NaN
     with pytest.raises(ValueError, match=r"\[T, H, W, 3\] alike"):
         pixel_uncertainty(truth, render, exact[..., 0])
+
+
+def test_the_camera_path_by_hand():
+    import torch
+
+    from pipeline.eval.camera_path import diameter, path_length, picked_path
+    square = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    assert path_length(square) == pytest.approx(3.0) and diameter(square) == pytest.approx(math.sqrt(2))
+    # 2 initial views, then picks [1,1,0] and [0,1,0]: from [1,0,0] -> [1,1,0] -> [0,1,0] = 2, over sqrt(2)
+    assert picked_path(square, 2, square) == pytest.approx(2 / math.sqrt(2))
+    assert picked_path(square[:2], 2, square) is None and path_length(square[:1]) == 0.0

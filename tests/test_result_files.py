@@ -76,6 +76,7 @@ def test_every_episode_records_its_final_models_pixel_uncertainty(sweep, tmp_pat
     assert report_main([str(out), "--out", str(tmp_path / "r"), "--no-images"]) == 0
     table = (tmp_path / "r" / "table.md").read_text()
     assert "pixel-level uncertainty of the final model" in table and "AUSE MAE (start-norm.)" in table
+    assert (finals["path_length"] > 0).all() and "Camera path (pool diameters)" in table
 
 
 def test_the_sweep_uses_exactly_the_benchmark_definition(sweep):

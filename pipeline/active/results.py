@@ -99,6 +99,8 @@ class FinalMetrics:
     # the final model's pixel-level uncertainty on the job's rendered test views
     # (``pipeline.eval.model_uncertainty``; None: not measured, e.g. a job rendering no view)
     uncertainty: dict | None = None
+    # the path through the picked cameras in pick order, over the pool's diameter (eval.camera_path)
+    path_length: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -32,6 +32,7 @@ from pipeline.experiment.build import MISSING_DATA, uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress
+from pipeline.eval.camera_path import picked_path
 from pipeline.eval.model_uncertainty import pixel_uncertainty
 from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
@@ -167,7 +168,9 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts, and the
     # pixel-level metrics of pipeline.eval.model_uncertainty in the final metrics)
-    taken = result.taken_cameras(scene.split(result.pool_split).cameras)
+    pool = scene.split(result.pool_split).cameras
+    taken = result.taken_cameras(pool)
+    result.final.path_length = picked_path(taken.centers, len(result.initial), pool.centers)
     if shown:
         variance = channel_variance_maps(result.gaussians, taken, views.cameras[shown], background).to(preds)
         for view, truth_k, pred_k, var_k in zip(shown, truth, preds, variance):

@@ -93,7 +93,7 @@ def final_columns(final: FinalMetrics) -> dict:
             "num_gaussians": final.num_gaussians, "degraded": bool(final.degraded),
             "curve_psnr_drop": final.curve_psnr_drop, "nonfinite_steps": int(final.nonfinite_steps),
             "metrics_version": final.metrics_version, "ssim_source": final.ssim_source,
-            **uncertainty_columns(final.uncertainty)}
+            "path_length": final.path_length, **uncertainty_columns(final.uncertainty)}
 
 
 UNCERTAINTY_PREFIX = "unc_"  # the final model's pixel-level uncertainty metrics (eval.model_uncertainty)
@@ -235,7 +235,7 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
              "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
              "lpips_status": tags.get("lpips_status"), "degraded": tags.get("degraded") == "true",
              "curve_psnr_drop": metrics.get("curve_psnr_drop"),
-             "nonfinite_steps": metrics.get("nonfinite_steps"),
+             "nonfinite_steps": metrics.get("nonfinite_steps"), "path_length": metrics.get("path_length"),
              **{k: v for k, v in metrics.items() if k.startswith(UNCERTAINTY_PREFIX)}}
     history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
                for key in ("test_psnr", "test_ssim", "test_ssim_skimage", "per_candidate_ms", "selection_seconds",

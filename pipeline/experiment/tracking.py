@@ -286,6 +286,7 @@ class MlflowTracker:
                 ("curve_psnr_drop", final.curve_psnr_drop, 0), ("nonfinite_steps", final.nonfinite_steps, 0),
                 ("final_lpips", final.lpips, 0)]
         out += [(k, v, 0) for k, v in uncertainty_columns(final.uncertainty).items() if k != "unc_views"]
+        out.append(("path_length", final.path_length, 0))
         return out
 
     def _log_artifacts(self, run_id: str, job: Job, outcome: JobOutcome) -> None:

@@ -227,14 +227,19 @@ def selection_time_table(final: pd.DataFrame, title: str, methods: list[str]) ->
     that share the cores do not inflate it. None when no method selected (random only)."""
     if "selection_cpu_seconds" not in final or final["selection_cpu_seconds"].isna().all():
         return []
+    costs = ["selection_cpu_seconds"] + (["path_length"] if "path_length" in final and final["path_length"].notna().any()
+                                         else [])
     table = build_table(final.rename(columns={"method": "Method"}),
-                        f"{title}: selection CPU seconds per round", "Method", "dataset",
-                        ["selection_cpu_seconds"], methods)
+                        f"{title}: selection CPU seconds per round" + (" and the camera path" if len(costs) > 1 else ""),
+                        "Method", "dataset", costs, methods)
     table.notes.append("Lower is better. The CPU time of a round's selection (scoring every "
                        "candidate), mean over the episode's rounds, then mean ± std over seeds; "
                        "unlike wall time, other jobs on the same cores do not inflate it. Numba's "
                        "one-time kernel compilation (a fresh machine's first rounds) is taken out "
-                       "of it and recorded apart (records column compile_seconds).")
+                       "of it and recorded apart (records column compile_seconds)."
+                       + (" Camera path: the length of the path from the last initial view through the picks in "
+                          "pick order, over the diameter of the pool's camera centres (a robot's travel; lower is "
+                          "cheaper)." if len(costs) > 1 else ""))
     return [table]
 
 
