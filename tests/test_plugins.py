@@ -155,15 +155,10 @@ def test_a_plugin_reusing_a_built_in_name_refuses_the_launches_that_use_it_and_w
 
 
 def test_a_method_key_that_is_a_built_in_name_must_run_that_strategy(tmp_path):
-    """`random: {strategy: farthest_view}` would put another method's numbers in the row 'random'."""
-    (tmp_path / "conf" / "method").mkdir(parents=True)
-    (tmp_path / "conf" / "method" / "mine.yaml").write_text("random:\n  strategy: coverage\n")
-    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        cfg = compose("config", [*TINY, "executor=local", "tracking=none", f"output_dir={tmp_path}/out",
-                                 f"hydra.searchpath=[file://{tmp_path}/conf]", "method=[mine]"])
+    """`random: {strategy: coverage}` would put another method's numbers in the row 'random'."""
     with pytest.raises(ConfigError, match=r"^method.random: the key 'random' is the built-in strategy's name, but its "
                                           r"strategy is 'coverage'; give the method another key"):
-        expand_jobs(cfg)
+        plugin_jobs(tmp_path, "random:\n  strategy: coverage\n")
 
 
 def test_dotted_paths_and_their_refusals(tmp_path, monkeypatch):
