@@ -169,3 +169,46 @@ def test_the_camera_path_by_hand():
     # 2 initial views, then picks [1,1,0] and [0,1,0]: from [1,0,0] -> [1,1,0] -> [0,1,0] = 2, over sqrt(2)
     assert picked_path(square, 2, square) == pytest.approx(2 / math.sqrt(2))
     assert picked_path(square[:2], 2, square) is None and path_length(square[:1]) == 0.0
+
+
+def test_depth_errors_by_hand():
+    import torch
+
+    from pipeline.eval.depth import depth_errors
+    truth = torch.tensor([[[2.0, 4.0], [float("inf"), 1.0]]])
+    depth = torch.tensor([[[2.2, 3.0], [5.0, 9.0]]])
+    alpha = torch.tensor([[[1.0, 0.9], [1.0, 0.1]]])  # the last pixel is transparent: not scored
+    e = depth_errors(depth, alpha, truth)
+    assert e.pixels == 2 and e.abs_rel == pytest.approx((0.1 + 0.25) / 2) and e.rmse == pytest.approx(math.sqrt((0.04 + 1) / 2))
+    assert depth_errors(depth, torch.zeros_like(alpha), truth) is None
+
+
+def test_the_generated_scenes_true_depth_is_its_silhouette_and_projects_back(tmp_path):
+    """Independent of how depth_truth builds its rays: the written image's coverage (its own
+    OpenGL rays, supersampled) agrees with where a depth exists, and each surface point at that depth
+    projects back onto its pixel centre through the OpenCV camera."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from pipeline.data.load import load_scene
+    from pipeline.data.synthetic import depth_truth, generate
+    root = generate(tmp_path / "g", seed=0, size=48, n_train=2, n_test=3)
+    test = load_scene(root).split("test")
+    depth = depth_truth(test.cameras)
+    for k, path in enumerate(test.images.paths):
+        alpha = np.asarray(Image.open(path))[..., 3]
+        finite = torch.isfinite(depth[k]).numpy()
+        assert finite[alpha == 255].all() and not finite[alpha == 0].any()
+    from pipeline.data.synthetic import _intersect_reference
+    k = 0
+    v, u = torch.nonzero(torch.isfinite(depth[k]), as_tuple=True)
+    z = depth[k][v, u]
+    kk, vm = test.cameras.Ks[k].double(), test.cameras.viewmats[k].double()
+    cam = torch.stack([(u + 0.5 - kk[0, 2]) / kk[0, 0] * z, (v + 0.5 - kk[1, 2]) / kk[1, 1] * z, z], 1)
+    world = (cam - vm[:3, 3]) @ vm[:3, :3]  # the surface point each pixel's depth names, in the world
+    centre = -vm[:3, :3].T @ vm[:3, 3]
+    towards = world - centre
+    hit = _intersect_reference(centre.float().expand(len(world), 3), (towards / towards.norm(dim=1, keepdim=True)).float())
+    assert torch.allclose(hit.t.double(), towards.norm(dim=1), rtol=1e-4)  # the first surface on that ray, there
+    assert float(z.min()) > 2.0 and float(z.max()) < 6.0  # cameras at distance 4 from an object about the origin

@@ -77,6 +77,8 @@ def test_every_episode_records_its_final_models_pixel_uncertainty(sweep, tmp_pat
     table = (tmp_path / "r" / "table.md").read_text()
     assert "pixel-level uncertainty of the final model" in table and "AUSE MAE (start-norm.)" in table
     assert (finals["path_length"] > 0).all() and "Camera path (pool diameters)" in table
+    assert finals["depth_abs_rel"].between(0, 1).all() and (finals["depth_pixels"] > 0).all()  # the generated scene
+    assert "Depth abs rel" in table
 
 
 def test_the_sweep_uses_exactly_the_benchmark_definition(sweep):

@@ -101,6 +101,8 @@ class FinalMetrics:
     uncertainty: dict | None = None
     # the path through the picked cameras in pick order, over the pool's diameter (eval.camera_path)
     path_length: float | None = None
+    # depth error on the rendered test views where the truth is known (the generated scene; eval.depth)
+    depth: dict | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

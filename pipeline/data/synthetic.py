@@ -277,6 +277,24 @@ def render_view(c2w: Tensor, size: int, textures: list[Tensor]) -> np.ndarray:
     return (out.numpy() * 255 + 0.5).astype(np.uint8)
 
 
+def depth_truth(cameras) -> Tensor:
+    """The generated scene's true depth [C, H, W] (camera z of the nearest surface, OpenCV cameras,
+    pixel centres at +0.5; inf where a ray meets nothing), by the same ray casting that renders it."""
+    out = []
+    for k in range(len(cameras)):
+        vm, kk = cameras.viewmats[k].double(), cameras.Ks[k].double()
+        w, h = int(cameras.width), int(cameras.height)
+        v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
+                              indexing="ij")
+        cam = torch.stack([(u - kk[0, 2]) / kk[0, 0], (v - kk[1, 2]) / kk[1, 1], torch.ones_like(u)], -1)  # z = 1
+        c2w = torch.linalg.inv(vm)
+        d = cam.reshape(-1, 3) @ c2w[:3, :3].T                      # [HW, 3], camera z component 1
+        norm = d.norm(dim=1, keepdim=True)
+        hit = _intersect(c2w[:3, 3].float().expand(len(d), 3), (d / norm).float())
+        out.append((hit.t.double() / norm[:, 0]).reshape(h, w))    # t along the unit ray -> camera z
+    return torch.stack(out)
+
+
 def at_fraction(done: int, total: int, parts: int) -> bool:
     """True when ``done`` of ``total`` views completes one of ``parts`` equal shares (and at the
     end): how often a caller of ``generate`` says how far it is."""

@@ -32,7 +32,9 @@ from pipeline.experiment.build import MISSING_DATA, uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress
+from pipeline.data.synthetic import depth_truth
 from pipeline.eval.camera_path import picked_path
+from pipeline.eval.depth import depth_errors
 from pipeline.eval.model_uncertainty import pixel_uncertainty
 from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
@@ -102,6 +104,14 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
         image = ep.acquired.image(view) if ep.acquired.is_acquired(view) else ep.pool.images[view]
         out["picked" if k == 0 else f"picked_{k + 1}"] = png_bytes(image)
     return out
+
+
+def generated_depth_errors(gaussians, cameras, background: torch.Tensor) -> dict | None:
+    """The final model's depth against the generated scene's true depth on ``cameras``."""
+    with torch.no_grad():
+        out = render(gaussians, cameras, background)
+    errors = depth_errors(out.depth, out.alpha, depth_truth(cameras))
+    return None if errors is None else errors.to_dict()
 
 
 def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -176,6 +186,8 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
         for view, truth_k, pred_k, var_k in zip(shown, truth, preds, variance):
             artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(uncertainty_row(truth_k, pred_k, var_k.sum(-1)))
         result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
+        if job.generate is not None:  # the generated scene knows its depth
+            result.final.depth = generated_depth_errors(result.gaussians, views.cameras[shown], background)
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 

@@ -93,7 +93,8 @@ def final_columns(final: FinalMetrics) -> dict:
             "num_gaussians": final.num_gaussians, "degraded": bool(final.degraded),
             "curve_psnr_drop": final.curve_psnr_drop, "nonfinite_steps": int(final.nonfinite_steps),
             "metrics_version": final.metrics_version, "ssim_source": final.ssim_source,
-            "path_length": final.path_length, **uncertainty_columns(final.uncertainty)}
+            "path_length": final.path_length, **uncertainty_columns(final.uncertainty),
+            **{f"depth_{k}": v for k, v in (final.depth or {}).items()}}
 
 
 UNCERTAINTY_PREFIX = "unc_"  # the final model's pixel-level uncertainty metrics (eval.model_uncertainty)

@@ -287,6 +287,7 @@ class MlflowTracker:
                 ("final_lpips", final.lpips, 0)]
         out += [(k, v, 0) for k, v in uncertainty_columns(final.uncertainty).items() if k != "unc_views"]
         out.append(("path_length", final.path_length, 0))
+        out += [(f"depth_{k}", v, 0) for k, v in (final.depth or {}).items() if k != "pixels"]
         return out
 
     def _log_artifacts(self, run_id: str, job: Job, outcome: JobOutcome) -> None:

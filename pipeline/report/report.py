@@ -217,7 +217,9 @@ def uncertainty_table(final: pd.DataFrame, title: str, methods: list[str]) -> li
         "AaltoML's released code), start-norm. = divided by the error of all pixels, fractions in [0, 0.999], "
         "zero-error pixels dropped (3DGS-Uncertainty's). NLL: Gaussian, sigma floored at 0.03 (AaltoML). AUCE: "
         "the area under |coverage - (1 - alpha)| over alpha in 0.01 ... 0.99. Pearson and Spearman: summed variance "
-        "against MAE. Lower is better for AUSE, NLL and AUCE, higher for the correlations.")
+        "against MAE. Lower is better for AUSE, NLL and AUCE, higher for the correlations. Depth (the generated "
+        "scene only, whose true depth is ray-cast): absolute relative error and RMSE of the rendered depth where "
+        "the surface is and the model is opaque (alpha >= 0.5).")
     return [table]
 
 
