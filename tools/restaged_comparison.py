@@ -45,7 +45,8 @@ def main(argv=None) -> int:
         if m not in table.index:
             return "n/a"
         r = table.loc[m]
-        return f"{r['mean']:.2f} ± {r['std']:.2f} ({int(r['count'])})"
+        spread = f" ± {r['std']:.2f}" if r["count"] > 1 else ""
+        return f"{r['mean']:.2f}{spread} ({int(r['count'])})"
     for m in methods:
         diff = (f"{new_m.loc[m, 'mean'] - old_m.loc[m, 'mean']:+.2f}" if m in old_m.index and m in new_m.index else "n/a")
         lines.append(f"| {m} | {cell(m, old_m)} | {cell(m, new_m)} | {diff} |")
