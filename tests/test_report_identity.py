@@ -62,6 +62,7 @@ PLUGIN = """
 """
 
 
+@pytest.mark.slow
 def test_a_plugin_edited_between_runs_is_refused_by_the_report(tmp_path, monkeypatch, capsys):
     """The issue's case: versions of a plugin run into one output folder became one row, their mean."""
     from pipeline.cli.report import main as report_main

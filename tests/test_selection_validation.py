@@ -115,6 +115,7 @@ def misbehaving_sweep(tmp_path_factory):
     return summary, RecordsFile(root / "out").frame
 
 
+@pytest.mark.slow
 def test_every_misbehaving_plugin_fails_its_job_once_naming_strategy_round_and_ids(misbehaving_sweep):
     summary, frame = misbehaving_sweep
     finals = frame[frame["kind"] == "final"].set_index("method")
@@ -129,6 +130,7 @@ def test_every_misbehaving_plugin_fails_its_job_once_naming_strategy_round_and_i
         assert __import__("re").search(message, last), last
 
 
+@pytest.mark.slow
 def test_no_misbehaving_row_enters_a_table(misbehaving_sweep):
     from pipeline.report.rows import finished
     _, frame = misbehaving_sweep
