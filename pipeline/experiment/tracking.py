@@ -158,6 +158,7 @@ class MlflowTracker:
         output_dir.mkdir(parents=True, exist_ok=True)
         self.output_dir = str(output_dir)  # tagged on every run: whose sweep a run belongs to
         self.uri = uri or f"sqlite:///{output_dir / 'mlflow.db'}"
+        self.shared = bool(uri)  # a server other folders' sweeps write to as well
         self.client = MlflowClient(tracking_uri=self.uri)
         self.experiment_id = self._experiment(experiment, None if uri else (output_dir / "mlartifacts").as_uri())
         if uri:
@@ -188,11 +189,17 @@ class MlflowTracker:
                               "as docker/compose.yaml does")
 
     def finished_hashes(self) -> set[str]:
+        """The config hashes this output folder finished, as the tracking store has them. On a
+        shared server (``tracking.uri``) only the runs tagged with this folder count: another
+        folder's finished runs of the same configs must not empty this sweep (its records and job
+        folders would never be written). The embedded store under the folder is the folder's own
+        (runs are counted whatever path they were tagged with, so a moved folder still resumes)."""
         hashes, token = set(), None
         while True:
             page = self.client.search_runs([self.experiment_id], "attributes.status = 'FINISHED'",
                                            max_results=1000, page_token=token)
-            hashes |= {r.data.tags["config_hash"] for r in page if "config_hash" in r.data.tags}
+            hashes |= {r.data.tags["config_hash"] for r in page if "config_hash" in r.data.tags
+                       and (not self.shared or r.data.tags.get("output_dir") == self.output_dir)}
             token = page.token
             if not token:
                 return hashes
