@@ -106,11 +106,10 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
     return out
 
 
-def generated_depth_errors(gaussians, cameras, background: torch.Tensor) -> dict | None:
-    """The final model's depth against the generated scene's true depth on ``cameras``."""
-    with torch.no_grad():
-        out = render(gaussians, cameras, background)
-    errors = depth_errors(out.depth, out.alpha, depth_truth(cameras))
+def generated_depth_errors(depth: torch.Tensor, alpha: torch.Tensor, cameras) -> dict | None:
+    """The final model's rendered depth and alpha [C, H, W] on ``cameras`` against the generated
+    scene's true depth there."""
+    errors = depth_errors(depth, alpha, depth_truth(cameras))
     return None if errors is None else errors.to_dict()
 
 
@@ -166,7 +165,8 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
     shown = result.test_ids[:job.renders]
     with torch.no_grad():
         background = scene.background.to(result.gaussians.means)
-        every = render(result.gaussians, views.cameras[result.test_ids], background).rgb  # [T, H, W, 3]
+        rendered = render(result.gaussians, views.cameras[result.test_ids], background)
+    every = rendered.rgb  # [T, H, W, 3]
     preds = every[:len(shown)]
     truth = views.images.stack(shown).to(preds)
     artifacts = {"selected_views.json": json.dumps({"initial": result.initial, "selected": result.selected,
@@ -187,7 +187,8 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
             artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(uncertainty_row(truth_k, pred_k, var_k.sum(-1)))
         result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
         if job.generate is not None:  # the generated scene knows its depth
-            result.final.depth = generated_depth_errors(result.gaussians, views.cameras[shown], background)
+            n = len(shown)  # the shown views are the first test views: their depth is rendered already
+            result.final.depth = generated_depth_errors(rendered.depth[:n], rendered.alpha[:n], views.cameras[shown])
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 
