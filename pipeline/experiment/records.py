@@ -94,15 +94,24 @@ def final_columns(final: FinalMetrics) -> dict:
             "curve_psnr_drop": final.curve_psnr_drop, "nonfinite_steps": int(final.nonfinite_steps),
             "metrics_version": final.metrics_version, "ssim_source": final.ssim_source,
             "path_length": final.path_length, **uncertainty_columns(final.uncertainty),
-            **{f"depth_{k}": v for k, v in (final.depth or {}).items()}}
+            **depth_columns(final.depth)}
 
 
 UNCERTAINTY_PREFIX = "unc_"  # the final model's pixel-level uncertainty metrics (eval.model_uncertainty)
+DEPTH_PREFIX = "depth_"  # the final model's depth errors where the true depth is known (eval.depth)
+# the final row's columns that MLflow carries as metrics of the same name (written by tracking, read back
+# by records_from_mlflow): one list, so a family added to the records reaches the read-back too
+TRACKED_METRIC_PREFIXES = (UNCERTAINTY_PREFIX, DEPTH_PREFIX)
 
 
 def uncertainty_columns(values: dict | None) -> dict:
     """``unc_<metric>`` columns of a final row (none when not measured)."""
     return {f"{UNCERTAINTY_PREFIX}{k}": v for k, v in (values or {}).items()}
+
+
+def depth_columns(values: dict | None) -> dict:
+    """``depth_<metric>`` columns of a final row (none when the scene's true depth is unknown)."""
+    return {f"{DEPTH_PREFIX}{k}": v for k, v in (values or {}).items()}
 
 
 def uncertainty_rows(base: dict, result: UncertaintyResult, seconds: float) -> list[dict]:
@@ -237,7 +246,7 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
              "lpips_status": tags.get("lpips_status"), "degraded": tags.get("degraded") == "true",
              "curve_psnr_drop": metrics.get("curve_psnr_drop"),
              "nonfinite_steps": metrics.get("nonfinite_steps"), "path_length": metrics.get("path_length"),
-             **{k: v for k, v in metrics.items() if k.startswith(UNCERTAINTY_PREFIX)}}
+             **{k: v for k, v in metrics.items() if k.startswith(TRACKED_METRIC_PREFIXES)}}
     history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
                for key in ("test_psnr", "test_ssim", "test_ssim_skimage", "per_candidate_ms", "selection_seconds",
                            "selection_cpu_seconds", *(SEARCH_METRICS if "world.kind" in params else ()))}

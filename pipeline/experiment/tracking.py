@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 from pipeline.active.results import RoundRecord
-from pipeline.experiment.records import SEARCH_TAKEN_CODES, uncertainty_columns
+from pipeline.experiment.records import SEARCH_TAKEN_CODES, depth_columns, uncertainty_columns
 from pipeline.experiment.console import console
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
@@ -292,9 +292,9 @@ class MlflowTracker:
                 ("final_ssim_skimage", final.ssim_skimage, 0), ("wall_seconds", outcome.seconds, 0),
                 ("curve_psnr_drop", final.curve_psnr_drop, 0), ("nonfinite_steps", final.nonfinite_steps, 0),
                 ("final_lpips", final.lpips, 0)]
-        out += [(k, v, 0) for k, v in uncertainty_columns(final.uncertainty).items() if k != "unc_views"]
         out.append(("path_length", final.path_length, 0))
-        out += [(f"depth_{k}", v, 0) for k, v in (final.depth or {}).items() if k != "pixels"]
+        # the families records_from_mlflow reads back by prefix (records.TRACKED_METRIC_PREFIXES)
+        out += [(k, v, 0) for k, v in {**uncertainty_columns(final.uncertainty), **depth_columns(final.depth)}.items()]
         return out
 
     def _log_artifacts(self, run_id: str, job: Job, outcome: JobOutcome) -> None:
