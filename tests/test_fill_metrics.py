@@ -105,3 +105,64 @@ def test_sweep_and_model_arguments_are_exclusive(tmp_path):
         eval_main(["--sweep", str(tmp_path), "model.ply"])
     with pytest.raises(SystemExit):
         eval_main([])
+
+
+MEASURED = ("path_length", "unc_", "depth_")  # what fill_uncertainty measures (records columns)
+
+
+def as_before_uncertainty(src, dst):
+    """A copy of the sweep as the code before the final model's uncertainty, camera path and depth
+    were measured wrote it."""
+    shutil.copytree(src, dst)
+    sweep = SweepFolder(dst)
+    for job in json.loads(sweep.jobs_file.read_text()):
+        path = sweep.job(job["config_hash"]).result_file
+        result = json.loads(path.read_text())
+        for key in ("uncertainty", "path_length", "depth"):
+            result["final"].pop(key)
+        path.write_text(json.dumps(result))
+    records = RecordsFile(dst)
+    frame = records.frame
+    frame.drop(columns=[c for c in frame if c.startswith(MEASURED)]).to_parquet(records.path, index=False)
+    return dst
+
+
+def test_filling_a_sweep_recorded_without_uncertainty_gives_back_what_the_episode_measures(current_sweep, tmp_path,
+                                                                                            capsys):
+    old = as_before_uncertainty(current_sweep, tmp_path / "old")
+    before = finals(old)
+    assert not [c for c in before if c.startswith(MEASURED)]
+    assert eval_main(["--sweep", str(old)]) == 0
+    out = capsys.readouterr().out
+    assert "uncertainty, camera path, depth: 2 filled, 0 already current, 0 refused" in out
+    now, filled = finals(current_sweep), finals(old)
+    columns = [c for c in now if c.startswith(MEASURED)]
+    assert {"path_length", "unc_ause_mae_max", "unc_nll", "depth_abs_rel"} <= set(columns)
+    for column in columns:
+        assert filled[column].tolist() == pytest.approx(now[column].tolist(), rel=1e-6), column
+    sweep = SweepFolder(old)
+    for config_hash in now.index:
+        result = json.loads(sweep.job(config_hash).result_file.read_text())["final"]
+        truth = json.loads(SweepFolder(current_sweep).job(config_hash).result_file.read_text())["final"]
+        assert result["uncertainty"] == pytest.approx(truth["uncertainty"], rel=1e-6)
+        assert result["depth"] == pytest.approx(truth["depth"], rel=1e-6)
+    assert load_records(old).query("kind == 'round'").shape == load_records(current_sweep).query("kind == 'round'").shape
+    # the report's uncertainty table now has them
+    assert "| random |" in make_report(old, tmp_path / "report")["tables"]
+    from pipeline.experiment.fill_metrics import fill_uncertainty
+    again = fill_uncertainty(old)
+    assert (again.filled, sorted(again.current)) == ([], sorted(now.index))
+
+
+def test_an_uncertainty_fill_refuses_a_model_that_is_not_the_scored_one(current_sweep, tmp_path, capsys):
+    old = as_before_uncertainty(current_sweep, tmp_path / "old")
+    sweep = SweepFolder(old)
+    a, b = sorted(finals(old).index)
+    shutil.copy(sweep.job(b).model_file, sweep.job(a).model_file)
+    untouched = sweep.job(a).result_file.read_bytes()
+    assert eval_main(["--sweep", str(old)]) == 1
+    out = capsys.readouterr().out
+    assert "uncertainty, camera path, depth: 1 filled, 0 already current, 1 refused" in out
+    assert sweep.job(a).result_file.read_bytes() == untouched
+    frame = finals(old)
+    assert pd.isna(frame.loc[a, "unc_nll"]) and not pd.isna(frame.loc[b, "unc_nll"])

@@ -4,8 +4,10 @@
                                                         Blender test split / every 8th COLMAP view)
     gopre-eval MODEL.ply SCENE --protocol goal       the test views in the 120-degree sector
     gopre-eval MODEL.ply SCENE --width 64 --out metrics.json
-    gopre-eval --sweep outputs/science                  fill in the 3DGS SSIM of a sweep's episodes
-                                                        recorded before it (metrics version 1)
+    gopre-eval --sweep outputs/science                  fill in what a sweep's episodes were recorded
+                                                        without: the 3DGS SSIM (metrics version 1), the
+                                                        final model's pixel-level uncertainty, camera
+                                                        path and (generated scene) depth errors
 
 MODEL is an INRIA-layout PLY (ours, gsplat's, INRIA's, nerfstudio's export); SCENE a Blender or
 COLMAP folder. The model is rendered at the scene's cameras scaled to ``--width`` (default: the
@@ -17,8 +19,9 @@ SSIM is 3DGS's (zero-padded windows, the mean over all pixels), ``ssim_skimage``
 ``--sweep DIR`` renders each finished episode's final model (``jobs/<hash>/artifacts/model.ply``)
 on its test views, checks that it reproduces the recorded PSNR and scikit-image SSIM, and writes
 the 3DGS SSIM into the job's result.json and the sweep's records.parquet (``--data-root``: where
-the scenes are when the sweep was copied from another machine). See
-``pipeline.experiment.fill_metrics``.
+the scenes are when the sweep was copied from another machine); then, for each episode recorded
+without the final model's uncertainty, it measures it as a job does today (the model must reproduce
+the recorded PSNR first) and writes it the same way. See ``pipeline.experiment.fill_metrics``.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from pipeline.cli import alias_note, command_name, unwritable
 from pipeline.data.images import DataError
 from pipeline.data.protocols import KINDS
 from pipeline.eval.model import evaluate_model
-from pipeline.experiment.fill_metrics import fill_ssim
+from pipeline.experiment.fill_metrics import fill_ssim, fill_uncertainty
 
 
 def main(argv=None) -> int:
@@ -42,7 +45,7 @@ def main(argv=None) -> int:
     parser.add_argument("model", type=Path, nargs="?", help="a 3DGS PLY")
     parser.add_argument("scene", type=Path, nargs="?", help="a Blender or COLMAP scene folder")
     parser.add_argument("--sweep", type=Path, default=None,
-                        help="a sweep folder: fill in the 3DGS SSIM of its version-1 episodes")
+                        help="a sweep folder: fill in the metrics its episodes were recorded without")
     parser.add_argument("--data-root", default=None, help="--sweep: where its scenes are now")
     parser.add_argument("--protocol", default="global", choices=KINDS)
     parser.add_argument("--width", type=int, default=None, help="render and compare at this width")
@@ -77,12 +80,14 @@ def main(argv=None) -> int:
 
 def fill_sweep(folder: Path, data_root: str | None) -> int:
     try:
-        report = fill_ssim(folder, data_root, progress=print)
+        ssim = fill_ssim(folder, data_root, progress=print)
+        print(f"{folder}: 3DGS SSIM: {ssim.summary()}")
+        uncertainty = fill_uncertainty(folder, data_root, progress=print)
+        print(f"{folder}: uncertainty, camera path, depth: {uncertainty.summary()}")
     except (DataError, ValueError, FileNotFoundError) as err:
         print(f"{command_name('eval')}: error: {err}", file=sys.stderr)
         return 1
-    print(f"{folder}: {report.summary()}")
-    return 1 if report.refused else 0
+    return 1 if ssim.refused or uncertainty.refused else 0
 
 
 if __name__ == "__main__":

@@ -1,5 +1,7 @@
 """Fill in what a finished sweep's records lack, from each job's final model: the 3DGS SSIM of
-episodes recorded before metrics version 2 (``pipeline.active.results``).
+episodes recorded before metrics version 2 (``pipeline.active.results``), and the final model's
+pixel-level uncertainty, camera path and (generated scene) depth errors of episodes recorded before
+those were measured (``fill_uncertainty``).
 
 For each finished episode job whose ``artifacts/result.json`` is version 1, the final model
 ``artifacts/model.ply`` is rendered on the episode's own test views, and:
@@ -12,6 +14,14 @@ For each finished episode job whose ``artifacts/result.json`` is version 1, the 
   SSIM stays missing (round models are not kept). MLflow runs are not touched: their
   ``final_ssim`` keeps its version-1 meaning, which ``records_from_mlflow`` reads as such.
 Nothing is trained or selected; a second run finds nothing to do.
+
+``fill_uncertainty``: for each finished episode whose result has no ``final.uncertainty``, the final
+model is rendered on all its test views, must reproduce the recorded per-view PSNR (the same check),
+and ``job.measure_final_model`` (the code a job runs today) measures it on the job's first ``renders``
+test views with the posterior of the views it took (``selected_views``' initial + selected, as the
+result lists them). ``result.json`` and the final row of ``records.parquet`` get the ``unc_*``,
+``path_length`` and ``depth_*`` values; MLflow runs are not touched. An episode of a capture world
+(views taken at poses outside the pool: their cameras are not kept) is refused.
 """
 
 from __future__ import annotations
@@ -24,13 +34,14 @@ from typing import Callable
 
 import numpy as np
 import pandas as pd
+import torch
 
 from pipeline.active.results import METRICS_VERSION, EpisodeResult
 from pipeline.eval.metrics import evaluate_views
 from pipeline.experiment.layout import JobFolder, SweepFolder
-from pipeline.experiment.records import RecordsFile
+from pipeline.experiment.records import RecordsFile, depth_columns, uncertainty_columns
 from pipeline.experiment.scene_lookup import scene_of
-from pipeline.splat import ply
+from pipeline.splat import ply, render
 from pipeline.experiment.spec import Job
 
 PSNR_TOLERANCE_DB = 1e-6
@@ -82,6 +93,79 @@ def fill_ssim(folder: str | Path, data_root: str | None = None,
         progress(f"{job.method} on {job.scene} (seed {job.seed}): SSIM {filled.final.ssim:.4f} "
                  f"(scikit-image {filled.final.ssim_skimage:.4f})")
     return report
+
+
+def fill_uncertainty(folder: str | Path, data_root: str | None = None,
+                     progress: Callable[[str], None] = lambda line: None) -> FillReport:
+    """Measure the final model's uncertainty (and camera path, and depth where known) of every
+    finished episode recorded without it; see the module docstring."""
+    sweep = SweepFolder(Path(folder))
+    records = RecordsFile(sweep.path)
+    report = FillReport()
+    scenes: dict = {}
+    for job in read_jobs(sweep):
+        layout = sweep.job(job.config_hash)
+        if job.kind != "episode" or not layout.result_file.exists():
+            continue
+        episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
+        if episode.final.uncertainty is not None or job.renders == 0:
+            report.current.append(job.config_hash)
+            continue
+        try:
+            measured = measured_episode(job, layout, episode, data_root, scenes)
+        except ValueError as err:
+            report.refused[job.config_hash] = str(err)
+            continue
+        write_result(layout, measured)
+        if not records.frame.empty:
+            records.add(measured_rows(records.frame, job.config_hash, measured))
+        report.filled.append(job.config_hash)
+        unc = measured.final.uncertainty
+        progress(f"{job.method} on {job.scene} (seed {job.seed}): AUSE MAE {unc['ause_mae_max']:.3f} (max-norm.), "
+                 f"NLL {unc['nll']:.2f}, AUCE {unc['auce']:.3f}")
+    return report
+
+
+def measured_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_root: str | None,
+                     scenes: dict) -> EpisodeResult:
+    """The episode with ``final``'s uncertainty, camera path and depth measured from its model
+    (ValueError when the model does not reproduce the recorded PSNR)."""
+    from pipeline.experiment.job import measure_final_model  # the worker's code (torch, the kernels)
+    if not layout.model_file.exists():
+        raise ValueError(f"no {layout.model_file}")
+    if episode.acquired_poses:
+        raise ValueError(f"{layout.result_file}: views taken in a capture world (their cameras are not kept)")
+    if job.masks:
+        raise ValueError(f"{layout.result_file}: a masked episode (its PSNR is over the masks; not checked here)")
+    key = (job.scene_path, episode.scene, job.episode.fit.image_width)
+    if key not in scenes:
+        scenes[key] = scene_of(job, {"scene": episode.scene}, None, data_root)
+    scene = scenes[key]
+    test = scene.split(episode.test_split)
+    ids = episode.test_ids
+    model = ply.load(layout.model_file)
+    background = scene.background.to(model.means)
+    psnr = evaluate_views(model, test.cameras[ids], test.images.stack(ids), background, ssim=False).psnr
+    psnr_gap = float(np.max(np.abs(np.subtract(psnr, episode.final.per_view_psnr))))
+    if not psnr_gap <= PSNR_TOLERANCE_DB:
+        raise ValueError(f"{layout.model_file} does not reproduce the recorded PSNR (largest per-view "
+                         f"gap {psnr_gap:.3g} dB): not the model that was scored")
+    with torch.no_grad():
+        rendered = render(model, test.cameras[ids], background)
+    out = replace(episode, final=replace(episode.final), gaussians=model)
+    measure_final_model(out, scene, rendered, min(job.renders, len(ids)), job.generate is not None)
+    return replace(out, gaussians=None)
+
+
+def measured_rows(frame: pd.DataFrame, config_hash: str, episode: EpisodeResult) -> list[dict]:
+    """The job's records rows, its final row with the measured columns."""
+    rows = frame[frame["config_hash"] == config_hash].to_dict("records")
+    final = episode.final
+    for row in rows:
+        if row["kind"] == "final":
+            row.update(path_length=final.path_length, **uncertainty_columns(final.uncertainty),
+                       **depth_columns(final.depth))
+    return rows
 
 
 def filled_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_root: str | None,

@@ -38,6 +38,8 @@ from pipeline.eval.depth import depth_errors
 from pipeline.eval.model_uncertainty import pixel_uncertainty
 from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
+from pipeline.splat.render import RenderOutput
+from pipeline.active.results import EpisodeResult
 from pipeline.experiment.spec import Job
 
 
@@ -178,18 +180,35 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts, and the
     # pixel-level metrics of pipeline.eval.model_uncertainty in the final metrics)
+    variance = measure_final_model(result, scene, rendered, len(shown), job.generate is not None)
+    for view, truth_k, pred_k, var_k in zip(shown, truth, preds, variance if variance is not None else []):
+        artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(uncertainty_row(truth_k, pred_k, var_k.sum(-1)))
+    return {"result": result.to_dict(), "artifacts": artifacts}
+
+
+def measure_final_model(result: EpisodeResult, scene: Scene, rendered: RenderOutput, shown: int,
+                        generated: bool) -> torch.Tensor | None:
+    """Set ``result.final``'s camera path, pixel-level uncertainty on the first ``shown`` test views
+    and (the generated scene, whose true depth is known) their depth errors, from the final model
+    ``result.gaussians`` and its render of every test view ``rendered`` ([T, H, W, ...], in
+    ``result.test_ids`` order). Returns the shown views' per-channel variance [shown, H, W, 3]
+    (None when none is shown). The episode job and ``fill_metrics`` (a sweep recorded before these
+    metrics) both measure here."""
+    views = scene.split(result.test_split)
     pool = scene.split(result.pool_split).cameras
     taken = result.taken_cameras(pool)
     result.final.path_length = picked_path(taken.centers, len(result.initial), pool.centers)
-    if shown:
-        variance = channel_variance_maps(result.gaussians, taken, views.cameras[shown], background).to(preds)
-        for view, truth_k, pred_k, var_k in zip(shown, truth, preds, variance):
-            artifacts[f"uncertainty/test_{view:04d}.png"] = png_bytes(uncertainty_row(truth_k, pred_k, var_k.sum(-1)))
-        result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
-        if job.generate is not None:  # the generated scene knows its depth
-            n = len(shown)  # the shown views are the first test views: their depth is rendered already
-            result.final.depth = generated_depth_errors(rendered.depth[:n], rendered.alpha[:n], views.cameras[shown])
-    return {"result": result.to_dict(), "artifacts": artifacts}
+    if shown == 0:
+        return None
+    ids = result.test_ids[:shown]
+    preds = rendered.rgb[:shown]
+    truth = views.images.stack(ids).to(preds)
+    background = scene.background.to(result.gaussians.means)
+    variance = channel_variance_maps(result.gaussians, taken, views.cameras[ids], background).to(preds)
+    result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
+    if generated:  # the shown views are the first test views: their depth is rendered already
+        result.final.depth = generated_depth_errors(rendered.depth[:shown], rendered.alpha[:shown], views.cameras[ids])
+    return variance
 
 
 def run_uncertainty_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
