@@ -33,13 +33,15 @@ demo: $(STAMP)
 	$(BIN)/gopre-run experiment=demo
 	$(BIN)/gopre-report outputs/demo --out reports/demo
 
+# The whole suite in one process per core (pytest-xdist); the tests that start clusters and servers
+# share one of them, one after another (tests/conftest.py, CLUSTER_MODULES).
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup
 
 # The quick loop: every module with its oracles, without the tests marked slow (real-data fits,
 # Ray/MLflow integration sweeps, kill-and-resume episodes). The full suite is `make test`.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup -m "not slow"
 
 # The viewer's browser tests (tests/test_view.py, marker e2e): the system Chromium, installed from
 # the Debian packages when missing (`make test` runs them whenever a browser is present).

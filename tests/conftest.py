@@ -32,3 +32,24 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+# `make test` runs the suite in two processes (pytest-xdist, --dist loadgroup). The tests that start
+# clusters and servers (Ray, `ray start` nodes, PostgreSQL and MLflow servers, the driver subprocesses
+# they kill) run one after another in one process: Ray finds "the latest cluster on this machine", the
+# servers' ports and processes are the machine's, and two such tests side by side would see each other.
+CLUSTER_MODULES = {"test_ray_cluster", "test_interrupt", "test_tracking_server", "test_shared_tracking",
+                   "test_executors", "test_deploy"}
+
+
+def _starts_a_cluster(item: pytest.Item) -> bool:
+    module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
+    if module in CLUSTER_MODULES or "ray_session" in getattr(item, "fixturenames", ()):
+        return True
+    return "executor=ray" in item.nodeid or "ray" in item.name.split("[")[0].split("_")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if _starts_a_cluster(item):
+            item.add_marker(pytest.mark.xdist_group("cluster"))
