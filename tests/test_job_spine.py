@@ -4,6 +4,7 @@ there) and every later reader shares that one EpisodeConfig."""
 from hydra import compose, initialize_config_dir
 
 import pipeline.experiment.build as build
+import pipeline.experiment.episode_settings as episode_settings
 from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.spec import Job
 
@@ -12,8 +13,8 @@ TINY = ["experiment=debug", "splat.iterations=50"]
 
 def test_a_job_is_resolved_once_and_its_config_shared(monkeypatch, tmp_path):
     calls = []
-    original = build.episode_config
-    monkeypatch.setattr(build, "episode_config", lambda job: calls.append(job.method) or original(job))
+    original = episode_settings.episode_config
+    monkeypatch.setattr(episode_settings, "episode_config", lambda job: calls.append(job.method) or original(job))
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", [*TINY, f"output_dir={tmp_path}"])
     jobs = build.expand_jobs(cfg)

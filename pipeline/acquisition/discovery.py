@@ -23,6 +23,7 @@ import importlib.metadata as metadata
 import inspect
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from pipeline.acquisition.registry import REGISTRY
 
 ENTRY_POINT_GROUP = "gopre.strategies"
 
@@ -54,7 +55,6 @@ class PluginIdentity:
 
 
 def _built_in() -> dict[str, type]:
-    from pipeline.acquisition import REGISTRY  # the package's own, listed there
     return REGISTRY
 
 

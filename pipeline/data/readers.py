@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline.data.images import DataError
-from pipeline.data.scene import Scene, SceneTraits
+from pipeline.data.scene import OBJECT, REAL, Scene, SceneTraits, traits_of  # noqa: F401 (the traits' public names)
 
 
 @dataclass(frozen=True)
@@ -49,20 +49,14 @@ def _nerfstudio(path: Path, width: int | None = None, masks: bool = False) -> Sc
     return read_nerfstudio(path, width=width, masks=masks)
 
 
-OBJECT = SceneTraits(kind="object", up="z", split="given")
-REAL = SceneTraits(kind="unbounded", up="estimated", split="llff")
-
 READERS = (
-    SceneReader("blender", lambda p: (p / "transforms_train.json").exists(), _blender, OBJECT, "transforms_train.json"),
-    SceneReader("nerfstudio", lambda p: (p / "transforms.json").exists(), _nerfstudio, REAL, "transforms.json"),
-    SceneReader("colmap", lambda p: (p / "sparse").exists(), _colmap, REAL, "sparse/"),
+    SceneReader("blender", lambda p: (p / "transforms_train.json").exists(), _blender, traits_of("blender"),
+                "transforms_train.json"),
+    SceneReader("nerfstudio", lambda p: (p / "transforms.json").exists(), _nerfstudio, traits_of("nerfstudio"),
+                "transforms.json"),
+    SceneReader("colmap", lambda p: (p / "sparse").exists(), _colmap, traits_of("colmap"), "sparse/"),
 )
 BY_FORMAT = {r.format: r for r in READERS}
-
-
-def traits_of(format: str) -> SceneTraits:
-    """A format's traits (an unknown format: a real scene's)."""
-    return BY_FORMAT[format].traits if format in BY_FORMAT else REAL
 
 
 def reader_for(path: Path) -> SceneReader:

@@ -39,6 +39,16 @@ class SceneTraits:
     split: str = "llff"
 
 
+OBJECT = SceneTraits(kind="object", up="z", split="given")   # a Blender object scene
+REAL = SceneTraits(kind="unbounded", up="estimated", split="llff")  # a capture (COLMAP, nerfstudio)
+FORMAT_TRAITS = {"blender": OBJECT, "nerfstudio": REAL, "colmap": REAL}  # each reader's (``readers.READERS``)
+
+
+def traits_of(format: str) -> SceneTraits:
+    """A format's traits (an unknown format: a real scene's)."""
+    return FORMAT_TRAITS.get(format, REAL)
+
+
 @dataclass
 class Scene:
     """A scene: named splits, a background colour [3], and optional points [P, 3] with colours."""
@@ -52,13 +62,12 @@ class Scene:
     point_colors: Tensor | None = None
     box: tuple[Tensor, Tensor] | None = None  # initialisation box when there are no points
     info: dict = field(default_factory=dict)
-    traits: SceneTraits | None = None        # None: its format's (``readers.READERS``)
+    traits: SceneTraits | None = None        # None: its format's (``FORMAT_TRAITS``)
     # per split, [C] mask files (white = the object, kept; black = ignored) when the capture has them
     masks: dict[str, list[Path]] | None = None
 
     def __post_init__(self) -> None:
         if self.traits is None:
-            from pipeline.data.readers import traits_of  # the registry reads scenes: import when used
             self.traits = traits_of(self.format)
 
     def split(self, name: str) -> Split:

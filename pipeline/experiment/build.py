@@ -13,49 +13,32 @@ import copy
 import hashlib
 import itertools
 import json
-from dataclasses import fields, replace
+from dataclasses import fields
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.acquisition import POSE_SCORING, REGISTRY as BUILT_IN, make_strategy, scores_any_pose
 from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve_strategy
-from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.data.fingerprint import FileDigests, scene_fingerprint
 from pipeline.data.images import DataError
-from pipeline.data.protocols import ProtocolConfig
-from pipeline.bounds import BoundsError, under
+from pipeline.bounds import BoundsError
 from pipeline.experiment.layout import SweepFolder
-from pipeline.experiment.schema import JOB_KINDS, config_problems, splat_problems
+from pipeline.experiment.schema import config_problems
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
+from pipeline.experiment.episode_settings import (SPLAT_KEYS, WORLD_KEYS, ConfigError, check_keys,  # noqa: F401
+                                                 episode_config, protocol_config, world_changes, world_section)
 from pipeline.experiment.splat_section import job_form
 
 # protocol/splat: overrides for this method; world: this method's capture simulator (gopre_search)
 METHOD_KEYS = {"strategy", "options", "protocol", "splat", "world"}
-SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
-              "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
-              "init", "fit", "reset_recovery", "densify_settle"}
-# init (+splat.init=ply:PATH), reset_recovery (+splat.reset_recovery=N) and densify_settle
-# (+splat.densify_settle=N) are optional; fit (conf/splat/<preset>.yaml lists the recipe, e.g.
-# splat.fit.lr.means_init=1e-4) reaches a job as what differs from the preset (splat_section.job_form),
-# so the presets' hashes do not change; `gopre-run ... plan=true` lists every hyperparameter a job runs with.
 # Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
 # never resumes or reuses results of the code before it. "fidelity-1": issue 26 (scene extent,
 # tau -> 0, ActiveNeRF port, prune switch, kNN scales, probes incl. the initial views).
 RESULTS_REVISION = "fidelity-1"
 NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")
-
-
-class ConfigError(ValueError):
-    """A sweep config that cannot run; the message names the key."""
-
-
-def check_keys(section: str, data: dict, allowed: set[str]) -> None:
-    unknown = set(data) - allowed
-    if unknown:
-        raise ConfigError(f"{section}: unknown keys {sorted(unknown)}; allowed {sorted(allowed)}")
 
 
 def config_hash(job: dict | Job) -> str:
@@ -268,80 +251,6 @@ def strategy_plugins(methods: dict) -> dict[str, dict | None]:
 def _warn(line: str) -> None:
     from pipeline.experiment.console import console
     console().warning(line)
-
-
-def episode_config(job: Job) -> EpisodeConfig:
-    """The core's plain dataclass for a job (the core never sees a DictConfig)."""
-    splat = dict(job.splat)
-    check_keys("splat", splat, SPLAT_KEYS)
-    problems = splat_problems(splat)  # a sweep axis's values too (0 is not "unset": 0 iterations would
-    if problems:                      # silently mean the preset's)
-        raise ConfigError("; ".join(problems))
-    try:
-        base = episode_preset(splat["preset"])
-        fit = base.fit
-        if splat.get("iterations"):
-            fit = fit.scaled_to(int(splat["iterations"]))
-        if splat.get("image_width"):
-            fit = fit.with_changes(image_width=int(splat["image_width"]))
-        if splat.get("max_gaussians"):
-            fit = fit.with_changes(densify=replace(fit.densify, max_gaussians=int(splat["max_gaussians"])))
-    except (ValueError, TypeError) as err:
-        raise ConfigError(under(err, "splat.")) from None
-    if splat.get("fit"):
-        try:
-            fit = fit.with_overrides(dict(splat["fit"]))
-        except ValueError as err:
-            raise ConfigError(under(err, "splat.fit.")) from None
-    fit = fit.with_changes(seed=job.seed)
-    protocol = _protocol(job.protocol)
-    changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
-                                      "views_per_round", "pool_keep_fraction", "lpips", "init", "reset_recovery",
-                                      "densify_settle")
-               if splat.get(k) is not None}
-    if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
-        changes["curve_test_views"] = None
-    changes.update(world_changes(job.world))
-    try:
-        return replace(base, fit=fit, protocol=protocol, strategy=job.strategy,
-                       strategy_options=dict(job.options), seed=job.seed, masks=bool(job.masks), **changes)
-    except (ValueError, TypeError) as err:  # EpisodeConfig's fields are the splat section's keys
-        raise ConfigError(under(err, "splat.")) from None
-
-
-WORLD_KEYS = {"kind", "model", "search"}
-
-
-def world_section(data: dict, where: str = "world") -> dict | None:
-    """The ``world`` section (at ``where``): None for the dataset's pool, else checked, as plain data."""
-    check_keys(where, data, WORLD_KEYS)
-    if data.get("kind", "dataset") == "dataset":
-        if data.get("model") is not None or data.get("search"):
-            raise ConfigError(f"{where}: model and search need a capture simulator (world=generated or twin)")
-        return None
-    if data["kind"] == "twin":
-        model = data.get("model")
-        if not (isinstance(model, str) and model.startswith("ply:")):
-            raise ConfigError(f"{where}.model: world=twin needs the reference splat as ply:PATH, got {model!r}")
-        if not Path(model[len("ply:"):]).is_file():
-            raise ConfigError(f"{where}.model: {model[len('ply:'):]}: no such file (make the scene's twin with "
-                              f"`gopre-data twin SCENE_FOLDER {model[len('ply:'):]}`)")
-    return {k: v for k, v in data.items() if v is not None}
-
-
-def world_changes(world: dict | None) -> dict:
-    """The EpisodeConfig fields of a job's world (none for the pool)."""
-    if world is None:
-        return {}
-    return {"world": world["kind"], "world_model": world.get("model"), "search": dict(world.get("search") or {})}
-
-
-def _protocol(data: dict) -> ProtocolConfig:
-    check_keys("protocol", data, {f.name for f in fields(ProtocolConfig)})
-    try:
-        return ProtocolConfig(**data)
-    except ValueError as err:
-        raise ConfigError(under(err, "protocol.")) from None
 
 
 def uncertainty_config(job: Job) -> UncertaintyConfig:

@@ -14,7 +14,7 @@ import pandas as pd
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import planned_schedule
 from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit, training_calls
-from pipeline.data.readers import traits_of
+from pipeline.data.scene import traits_of
 from pipeline.experiment.data_changes import data_changes
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.spec import Job

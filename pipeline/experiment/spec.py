@@ -4,7 +4,8 @@
 always been made of, so finished sweeps still resume) and returns ``Job`` records; across Ray a job
 travels as ``to_dict()`` and comes back with ``from_dict``. ``protocol``, ``splat``, ``options``,
 ``generate`` and ``uncertainty`` stay mappings: they are the config's sections, turned into the
-core's dataclasses by ``pipeline.experiment.build`` (``episode_config``, ``uncertainty_config``).
+core's dataclasses by ``pipeline.experiment.episode_settings`` (``episode_config``) and
+``pipeline.experiment.build`` (``uncertainty_config``).
 """
 
 from __future__ import annotations
@@ -88,11 +89,11 @@ class Job:
 
     @property
     def episode(self) -> "EpisodeConfig":
-        """The core's episode config of this job (``build.episode_config``), resolved once and kept:
+        """The core's episode config of this job (``episode_settings.episode_config``), resolved once and kept:
         every reader (the worker, the plan, scene loading, the viewer, result files) shares it."""
         cached = self.__dict__.get("_episode")
         if cached is None:
-            from pipeline.experiment.build import episode_config  # build makes Jobs: import when used
+            from pipeline.experiment.episode_settings import episode_config  # torch: only when resolved
             cached = self.__dict__["_episode"] = episode_config(self)
         return cached
 
