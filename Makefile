@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml requirements.lock
 	$(BIN)/pip install -q --no-deps -e .
 	touch $(STAMP)
 
-.PHONY: env lock demo test test-fast e2e latex texlive mutate bench postgres
+.PHONY: env lock demo test test-fast lint e2e latex texlive mutate bench postgres
 env: $(STAMP)
 
 # Re-lock after changing pyproject.toml's dependencies: resolve them in a fresh venv, freeze it.
@@ -37,6 +37,14 @@ demo: $(STAMP)
 # share one of them, one after another (tests/conftest.py, CLUSTER_MODULES).
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup
+
+# Lint and types (CI runs it before the tests): ruff's pyflakes/pycodestyle rules, the layer contracts
+# (import-linter), and mypy over the package (pyproject.toml: its config and the modules still on the
+# baseline). No import cycle inside a package is a test (tests/test_import_cycles.py).
+lint: $(STAMP)
+	$(BIN)/ruff check pipeline tests tools examples
+	$(BIN)/lint-imports
+	$(BIN)/mypy
 
 # The quick loop: every module with its oracles, without the tests marked slow (real-data fits,
 # Ray/MLflow integration sweeps, kill-and-resume episodes). The full suite is `make test`.

@@ -228,6 +228,6 @@ class BoundsError(ValueError):
         return "; ".join(prefix + p for p in self.problems)
 
 
-def under(err: ValueError, prefix: str) -> str:
+def under(err: ValueError | TypeError, prefix: str) -> str:
     """An error's message with ``prefix`` before each key it names (a BoundsError's every line)."""
     return err.under(prefix) if isinstance(err, BoundsError) else f"{prefix}{err}"

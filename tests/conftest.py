@@ -19,6 +19,15 @@ def _threads():
     yield
 
 
+@pytest.fixture(scope="module")
+def ray_session():
+    """A local Ray instance of 2 CPUs for the module's tests (Ray's own, started and stopped here)."""
+    ray = pytest.importorskip("ray")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
 def shared_scene(*parts: str) -> Path:
     """Path to a staged scene under ../shared/data, or skip the test with the reason."""
     path = SHARED_DATA.joinpath(*parts)

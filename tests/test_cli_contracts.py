@@ -65,7 +65,8 @@ def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():
     assert fit.lr.sh0 == before.lr.sh0 and fit.densify.interval == before.densify.interval
     assert job.config_hash != base.config_hash and "fit" not in base.splat
     for override, match in (("+splat.fit.lr.mean_init=1e-4", r"splat\.fit\.lr\.mean_init: unknown"),
-                            ("+splat.fit.densify.max_gaussians=abc", r"splat\.fit\.densify\.max_gaussians: 'abc' is not an integer >= 1, or null"),
+                            ("+splat.fit.densify.max_gaussians=abc",
+                             r"splat\.fit\.densify\.max_gaussians: 'abc' is not an integer >= 1, or null"),
                             ("+splat.fit.iterations=50", r"splat\.fit\.iterations: set the recipe's length"),
                             ("splat.fit.lr=3", r"splat\.fit\.lr: a group")):
         with pytest.raises(ConfigError, match=match):

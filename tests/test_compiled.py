@@ -452,7 +452,6 @@ def test_a_pairs_pixel_box_holds_every_pixel_it_reaches():
     Gaussian's pixels: every pixel ``_pair`` does not skip must lie inside it (brute force over
     whole tiles; a missed pixel would silently drop part of the image and its gradients), and on
     typical Gaussians it is much smaller than the tile."""
-    import numpy as np
     k = compiled.load()
     packed = _span_cases()
     tile, width, height = 8, 53, 45  # edge tiles cut by the image

@@ -4,7 +4,6 @@ import json
 import math
 
 import pytest
-import torch
 
 from pipeline.data.load import load_scene
 from pipeline.data.synthetic import generate

@@ -3,7 +3,6 @@ job runs under the driver's code and packages or is refused, its state lives und
 wherever it runs, and its CPU reservation holds."""
 
 import re
-import json
 import os
 import subprocess
 import sys
@@ -15,9 +14,8 @@ import pytest
 from pipeline.experiment.build import ConfigError, expand_jobs
 from pipeline.experiment.executors import EXECUTOR_KINDS, Executor, make_executor
 from pipeline.experiment.executors.worker import DriverIdentity, read_starts, run_here
-from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.records import RecordsFile
-from tests.test_experiment import TINY, composed, ray_session  # noqa: F401 (a fixture)
+from tests.test_experiment import TINY, composed
 
 BIN = Path(sys.executable).parent
 

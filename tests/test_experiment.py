@@ -44,14 +44,6 @@ def base(tmp_path_factory):
     return tmp_path_factory.mktemp("sweeps")
 
 
-@pytest.fixture(scope="module")
-def ray_session():
-    ray = pytest.importorskip("ray")
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_preset_composes_at_paper_scale_and_says_how_to_run_it(preset, tmp_path):
     text = (CONF_DIR / "experiment" / f"{preset}.yaml").read_text()

@@ -15,7 +15,7 @@ from pipeline.fisher.posterior import (gopre_score, gopre_score_of_fishers, gopr
 from pipeline.fit.config import FitConfig, DensifyConfig
 from pipeline.fit.losses import photometric_loss
 from pipeline.fit.trainer import Trainer
-from pipeline.splat import Gaussians, RenderSettings, compiled, render
+from pipeline.splat import RenderSettings, compiled, render
 from pipeline.splat.compiled import fused_paths
 from pipeline.splat.project import project
 from pipeline.splat.scenes import orbit_cameras, random_scene

@@ -3,7 +3,6 @@ distribution's entry points and through dotted paths, each refusal, the plugin's
 job hash, and the example plugin's strategy by hand."""
 
 import json
-import math
 import shutil
 import subprocess
 import sys

@@ -3,7 +3,6 @@ against the package's JSON Schema (checked with jsonschema), whose views equal t
 benchmark definition; a result written without the pipeline's selection code is accepted in the
 report beside the sweep's rows; a changed split or ground-truth hash is refused naming the field."""
 
-import copy
 import json
 import shutil
 import subprocess

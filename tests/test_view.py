@@ -310,7 +310,8 @@ def test_the_viewer_in_a_headless_browser(viewer, tmp_path):
             first_scores = dict(v.goal.scores)
             second = score_with_start("180")
             assert v.goal.manifold["start_deg"] == 180.0 and v.goal.scores != first_scores
-            table = lambda body: body[body.index("Next best view"):body.index("Camera")]
+            def table(body):
+                return body[body.index("Next best view"):body.index("Camera")]
             assert table(first) != table(second)
         finally:
             browser.close()
@@ -372,7 +373,7 @@ def test_a_sweep_folder_lists_its_jobs_and_a_moved_scene_is_found_with_data_root
     sweep = job_dir.parent.parent
     assert main([str(sweep)]) == 1
     err = capsys.readouterr().err
-    assert "is a sweep folder" in err and f"gopre / " in err and job_dir.name in err
+    assert "is a sweep folder" in err and "gopre / " in err and job_dir.name in err
     # the sweep copied elsewhere, its scene moved: found by --data-root, named when missing
     copy = tmp_path / "copied"
     shutil.copytree(sweep, copy, ignore=shutil.ignore_patterns("mlflow.db", "mlartifacts"))

@@ -11,7 +11,6 @@ it; tau enters the score only, the posterior is the paper's unit-noise one),
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 from torch import Tensor

@@ -18,6 +18,10 @@ Nothing a job selects or trains depends on the version, so the config hash does 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pipeline.cameras import Cameras
 
 from torch import Tensor
 

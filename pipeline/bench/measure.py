@@ -5,7 +5,6 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 import os
-from contextlib import contextmanager
 import statistics
 import time
 from typing import Callable

@@ -160,10 +160,14 @@ def reconstruct_subset(model: ModelPoses, every: int, work: Path, say: Progress)
     return ModelPoses(registered, viewmats, []), len(names)
 
 
+def image_key(name: str) -> str:
+    """A photo's name without its folder separators and extension (the two models name them alike)."""
+    return name.replace("/", "_").rsplit(".", 1)[0]
+
+
 def compare(model: ModelPoses, subset: ModelPoses, subset_size: int, every: int, seconds: float = 0.0) -> GeometryCheck:
     """The subset's cameras against the model's (matched by file name), after a similarity."""
-    key = (lambda name: name.replace("/", "_").rsplit(".", 1)[0])
-    true, est, _ = matched(model.names, model.cameras(), subset.names, subset.cameras(), key=key)
+    true, est, _ = matched(model.names, model.cameras(), subset.names, subset.cameras(), key=image_key)
     errors, centre, _ = pose_error_arrays(true, est)
     fit_on = list(range(len(true)))
     for _ in range(TRIM_ROUNDS):  # a camera the subset registered wrongly must not bend the fit of the rest

@@ -120,7 +120,7 @@ def fill_uncertainty(folder: str | Path, data_root: str | None = None,
         if not records.frame.empty:
             records.add(measured_rows(records.frame, job.config_hash, measured))
         report.filled.append(job.config_hash)
-        unc = measured.final.uncertainty
+        unc = measured.final.uncertainty or {}
         progress(f"{job.method} on {job.scene} (seed {job.seed}): AUSE MAE {unc['ause_mae_max']:.3f} (max-norm.), "
                  f"NLL {unc['nll']:.2f}, AUCE {unc['auce']:.3f}")
     return report

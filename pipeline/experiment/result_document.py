@@ -29,7 +29,8 @@ def views_block(scene: Scene, views: ProtocolViews, width: int | None, data_fing
     """What a method must use: splits, initial views, pool, test views with the sha256 of each
     ground-truth image file, the budget, the working width and the scene's data fingerprint."""
     test_paths = scene.split(views.test_split).images.paths
-    return {**({"data_fingerprint": data_fingerprint} if data_fingerprint else {}),"pool_split": views.pool_split, "test_split": views.test_split,
+    return {**({"data_fingerprint": data_fingerprint} if data_fingerprint else {}),
+            "pool_split": views.pool_split, "test_split": views.test_split,
             "initial_ids": list(views.initial_ids), "pool_ids": list(views.pool_ids),
             "probe_ids": list(views.probe_ids), "test_ids": list(views.test_ids), "budget": int(views.budget),
             "image_width": width,

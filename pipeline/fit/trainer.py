@@ -172,7 +172,7 @@ class Trainer:
 
     # -- training -------------------------------------------------------------------------------
     def train_step(self) -> StepInfo:
-        cfg, dcfg = self.config, self.config.densify
+        dcfg = self.config.densify
         self.step += 1
         for group in self.optimizer.param_groups:
             if group["name"] == "means":

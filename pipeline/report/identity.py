@@ -98,5 +98,5 @@ def identity_markdown(frame: pd.DataFrame) -> str:
                      f"{', '.join(dict.fromkeys(part['plugin_identity']))} | {data} |")
     mixed = mixed_rows(frame)
     if mixed:
-        lines += ["", f"**Mixed rows, reported with `--allow-mixed`:** " + "; ".join(mixed) + "."]
+        lines += ["", "**Mixed rows, reported with `--allow-mixed`:** " + "; ".join(mixed) + "."]
     return "\n".join(lines) + "\n"

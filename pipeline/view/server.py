@@ -312,9 +312,13 @@ class EpisodeViewer:
             f"- candidates: {sum(r == 'candidate' for r, _ in roles.values())} "
             f"(coloured by score: bright cyan = best, dark teal = worst)",
             f"- test views: {len(self.run.views.test_ids)}",
-            *([f"- captured off the pool: {', '.join(str(v) for v, (r, _) in roles.items() if self.run.is_captured(v) and r != 'later') or 'none yet'}"]
+            *([f"- captured off the pool: {self._captured_list(roles) or 'none yet'}"]
               if self.run.captured is not None else []),
         ])
+
+    def _captured_list(self, roles: dict[int, tuple[str, str]]) -> str:
+        """The views captured off the pool so far (not the ones still to come)."""
+        return ", ".join(str(v) for v, (r, _) in roles.items() if self.run.is_captured(v) and r != "later")
 
     def goal_manifold(self) -> dict:
         """The goal the GUI describes, in config form."""

@@ -18,7 +18,6 @@ without waiting, and if it is gone anyway the driver says so once and goes on wi
 from __future__ import annotations
 
 import os
-import time
 import traceback
 import uuid
 from pathlib import Path
