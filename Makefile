@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml requirements.lock
 	$(BIN)/pip install -q --no-deps -e .
 	touch $(STAMP)
 
-.PHONY: env lock demo test test-fast lint e2e latex texlive mutate bench postgres
+.PHONY: env lock demo test test-fast lint docs e2e latex texlive mutate bench postgres
 env: $(STAMP)
 
 # Re-lock after changing pyproject.toml's dependencies: resolve them in a fresh venv, freeze it.
@@ -45,6 +45,11 @@ lint: $(STAMP)
 	$(BIN)/ruff check pipeline tests tools examples
 	$(BIN)/lint-imports
 	$(BIN)/mypy
+
+# The documentation site (docs/, mkdocs.yml) into site/, strict: a broken link, a missing page or
+# an API docstring mkdocstrings cannot read is an error (CI runs it).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -q
 
 # The quick loop: every module with its oracles, without the tests marked slow (real-data fits,
 # Ray/MLflow integration sweeps, kill-and-resume episodes). The full suite is `make test`.
