@@ -1,72 +1,305 @@
-"""The deployment files, read as their tools read them (no Docker engine or Kubernetes runs here;
-what the containers run is exercised directly by tests/test_ray_cluster.py and
-tests/test_tracking_server.py): docker compose, and KubeRay's RayJob."""
+"""The deployment files, read as their tools read them, and held to the rules a lab's deployment
+needs (no Docker engine or Kubernetes runs here; what the containers run is exercised directly by
+tests/test_ray_cluster.py and tests/test_tracking_server.py): docker compose on one machine and on
+several, the image recipe and its build context, and KubeRay's RayJob with everything it refers to.
 
+The official schemas (the Compose specification's JSON schema, KubeRay's CRDs) are not copied into
+this repository; the field lists below are the subset of them these files use, written from their
+documentation (docs.docker.com/reference/compose-file, the KubeRay API reference), so a misspelt
+or misplaced key fails here as it would fail `docker compose config` or the API server."""
+
+import re
 import shlex
+import shutil
+import subprocess
 from pathlib import Path
 
+import pytest
 import yaml
 
-from pipeline.experiment.provenance import PACKAGE_ROOT, read_lock
+from pipeline.experiment.provenance import PACKAGE_ROOT, code_version, read_lock
 from tests.test_experiment import composed
 
 DOCKER = PACKAGE_ROOT / "docker"
-RAYJOB = PACKAGE_ROOT / "deploy" / "kuberay" / "rayjob.yaml"
+KUBERAY = PACKAGE_ROOT / "deploy" / "kuberay"
+COMPOSE_FILES = [DOCKER / "compose.yaml", DOCKER / "compose.worker.yaml"]
+
+# The Compose specification's top-level and service keys these files may use (a subset of the spec).
+COMPOSE_TOP = {"name", "services", "volumes", "networks", "configs", "secrets"}
+COMPOSE_SERVICE = {"build", "image", "command", "entrypoint", "environment", "env_file", "volumes", "ports",
+                   "depends_on", "healthcheck", "restart", "network_mode", "networks", "shm_size", "deploy",
+                   "user", "working_dir", "labels", "profiles", "expose", "extra_hosts", "ulimits"}
+COMPOSE_BUILD = {"context", "dockerfile", "args", "target", "cache_from"}
+COMPOSE_HEALTHCHECK = {"test", "interval", "timeout", "retries", "start_period", "start_interval", "disable"}
+DEPENDS_CONDITIONS = {"service_started", "service_healthy", "service_completed_successfully"}
+RESTART_POLICIES = {"always", "unless-stopped", "on-failure"}
+SHARED_TARGETS = {"/data", "/app/outputs"}  # what the driver's node probe reads on every node
+
+# KubeRay's ray.io/v1 fields these files use (the KubeRay API reference; authOptions from v1.5.1).
+RAYJOB_SPEC = {"entrypoint", "shutdownAfterJobFinishes", "ttlSecondsAfterFinished", "backoffLimit",
+               "rayClusterSpec", "runtimeEnvYAML", "submitterPodTemplate", "activeDeadlineSeconds",
+               "suspend", "submissionMode", "entrypointNumCpus", "clusterSelector", "deletionStrategy"}
+RAYCLUSTER_SPEC = {"rayVersion", "headGroupSpec", "workerGroupSpecs", "enableInTreeAutoscaling",
+                   "autoscalerOptions", "authOptions", "headServiceAnnotations", "suspend", "gcsFaultToleranceOptions"}
+WORKER_GROUP = {"groupName", "replicas", "minReplicas", "maxReplicas", "rayStartParams", "template",
+                "numOfHosts", "scaleStrategy", "suspend", "idleTimeoutSeconds"}
+HEAD_GROUP = {"rayStartParams", "template", "serviceType", "headService", "enableIngress"}
+AUTOSCALER_OPTIONS = {"upscalingMode", "idleTimeoutSeconds", "resources", "image", "imagePullPolicy", "env",
+                      "envFrom", "securityContext", "volumeMounts", "version"}
 
 
-def gopre_overrides(command: str) -> list[str]:
-    """The Hydra overrides of a `gopre-run ...` command line."""
-    words = shlex.split(command)
-    assert words[0] == "gopre-run", command
-    return words[1:]
+def load(path: Path):
+    return yaml.safe_load(path.read_text())
 
 
-def test_the_compose_tracking_server_is_postgres_with_proxied_artifacts():
-    compose = yaml.safe_load((DOCKER / "compose.yaml").read_text())
-    mlflow = compose["services"]["mlflow"]["command"]
-    assert "--backend-store-uri postgresql://" in mlflow  # psycopg 3 (the server extra, locked)
-    assert "--artifacts-destination" in mlflow and "--default-artifact-root" not in mlflow
-    assert "psycopg" in read_lock() and "psycopg-binary" in read_lock()
+def variables(text: str) -> set[str]:
+    """The ${VAR}, ${VAR:-default} and ${VAR:?message} names a compose file interpolates."""
+    return set(re.findall(r"\$\{([A-Z_][A-Z0-9_]*)", text))
 
 
-def test_the_compose_cluster_serves_every_port_it_publishes_and_shares_output_dir():
-    compose = yaml.safe_load((DOCKER / "compose.yaml").read_text())
-    head = compose["services"]["ray-head"]
-    published = {int(p.split(":")[0]) for p in head["ports"]}
-    assert published == {6379, 8265, 10001}
-    assert "--dashboard-host=0.0.0.0" in head["command"] and "--ray-client-server-port=10001" in head["command"]
-    lock = read_lock()
-    assert {"aiohttp-cors", "grpcio", "opencensus"} <= set(lock)  # ray[default] (dashboard), ray[client]
-    for name in ("ray-head", "ray-worker"):  # the nodes (the driver runs on the head)
-        service = compose["services"][name]
-        assert "outputs:/app/outputs" in service.get("volumes", compose["x-gopre"]["volumes"])
-        assert service["environment"]["RAY_AUTH_MODE"] == "token"
-    assert compose["services"]["mlflow"]["volumes"] == ["mlartifacts:/mlartifacts"]  # the server's own disk
-    worker = yaml.safe_load((DOCKER / "compose.worker.yaml").read_text())["services"]["ray-worker"]
-    assert worker["command"].startswith("ray start --address=") and worker["environment"]["RAY_AUTH_MODE"] == "token"
-    assert any(v.endswith(":/app/outputs") for v in worker["volumes"])
+def header(text: str) -> str:
+    return "\n".join(line for line in text.splitlines() if line.startswith("#"))
 
 
-def test_the_kuberay_rayjob_has_what_kuberay_requires_and_a_valid_sweep(tmp_path):
-    job = yaml.safe_load(RAYJOB.read_text())
-    assert job["apiVersion"] == "ray.io/v1" and job["kind"] == "RayJob" and job["metadata"]["name"]
-    spec = job["spec"]
-    cluster = spec["rayClusterSpec"]
+def normalised(mount: str) -> tuple[str, str]:
+    """(source with its interpolation reduced to the variable, target) of a `src:dst[:ro]` mount."""
+    source, target = mount.split(":")[:2] if not mount.startswith("${") else _split_interpolated(mount)
+    return re.sub(r"\$\{([A-Z_]+)[^}]*\}", r"${\1}", source), target
+
+
+def _split_interpolated(mount: str) -> tuple[str, str]:
+    end = mount.index("}") + 1  # the variable may hold ':?message'
+    rest = mount[end:].split(":")
+    return mount[:end] + rest[0], rest[1]
+
+
+def gopre_services(compose: dict) -> dict[str, dict]:
+    return {name: s for name, s in compose["services"].items() if s.get("image", "").startswith("gopre")}
+
+
+def ray_nodes(compose: dict) -> dict[str, dict]:
+    return {name: s for name, s in compose["services"].items() if "ray start" in str(s.get("command", ""))}
+
+
+@pytest.mark.parametrize("path", COMPOSE_FILES, ids=lambda p: p.name)
+def test_a_compose_file_uses_only_keys_and_values_compose_accepts(path):
+    compose = load(path)
+    assert set(k for k in compose if not k.startswith("x-")) <= COMPOSE_TOP
+    declared_volumes = set(compose.get("volumes") or {})
+    for name, service in compose["services"].items():
+        assert set(service) <= COMPOSE_SERVICE, (name, set(service) - COMPOSE_SERVICE)
+        assert set(service.get("build", {})) <= COMPOSE_BUILD, name
+        assert set(service.get("healthcheck", {})) <= COMPOSE_HEALTHCHECK, name
+        assert not ("network_mode" in service and "ports" in service), f"{name}: host networking publishes no ports"
+        depends = service.get("depends_on", {})
+        for other, how in (depends.items() if isinstance(depends, dict) else ((d, {}) for d in depends)):
+            assert other in compose["services"], f"{name} depends on an unknown service {other}"
+            condition = how.get("condition", "service_started")
+            assert condition in DEPENDS_CONDITIONS
+            if condition == "service_healthy":
+                assert "healthcheck" in compose["services"][other], f"{name} waits for {other}'s health, it has none"
+        for mount in service.get("volumes", []):
+            source, _ = normalised(mount)
+            if not source.startswith(("/", ".", "$")):  # a named volume
+                assert source in declared_volumes, f"{name}: volume {source} is not declared"
+
+
+@pytest.mark.parametrize("path", COMPOSE_FILES, ids=lambda p: p.name)
+def test_every_variable_a_compose_file_needs_is_said_in_its_header(path):
+    text = path.read_text()
+    for var in variables(text) - {"POSTGRES_PASSWORD"}:  # has a default, on the compose network only
+        assert var in header(text), f"{path.name}: ${{{var}}} is not explained in the header"
+    assert "RAY_AUTH_TOKEN" in variables(text)
+
+
+def test_every_node_on_every_machine_mounts_the_same_data_and_outputs():
+    """The driver probes /data and /app/outputs on every node: one shared source each, everywhere."""
+    mounts = {}
+    for path in COMPOSE_FILES:
+        for name, service in ray_nodes(load(path)).items():
+            shared = {t: s for s, t in map(normalised, service["volumes"]) if t in SHARED_TARGETS}
+            assert set(shared) == SHARED_TARGETS, f"{path.name} {name}: {shared}"
+            mounts[f"{path.name}:{name}"] = shared
+    assert len({tuple(sorted(m.items())) for m in mounts.values()}) == 1, mounts
+    assert all(m["/data"] == "${SHARED}/data" for m in mounts.values())
+
+
+def test_ray_nodes_reach_each_other_and_every_endpoint_is_private_or_authenticated():
+    for path in COMPOSE_FILES:
+        compose = load(path)
+        for name, service in ray_nodes(compose).items():
+            # Ray's node manager, object manager and worker ports go both ways between machines
+            assert service.get("network_mode") == "host", f"{path.name} {name}"
+            assert service["environment"]["RAY_AUTH_MODE"] == "token", f"{path.name} {name}"
+            assert service.get("restart") in RESTART_POLICIES
+            command = service["command"]
+            assert "--node-ip-address=" in command  # the address the other machines reach
+            if "--head" in command:
+                assert "--dashboard-host=127.0.0.1" in command  # the Jobs API runs code: loopback only
+                assert "healthcheck" in service
+            else:
+                assert "--address=" in command
+        for name, service in compose["services"].items():
+            for port in service.get("ports", []):
+                assert str(port).startswith("127.0.0.1:"), f"{path.name} {name} publishes {port} to every interface"
+    head = load(DOCKER / "compose.yaml")
+    worker = head["services"]["ray-worker"]
+    assert worker["depends_on"]["ray-head"]["condition"] == "service_healthy"
+    assert "--dashboard-agent-listen-port=" in worker["command"]  # a second node on the head's host
+    mlflow = head["services"]["mlflow"]["command"]
+    assert "--backend-store-uri postgresql://" in mlflow and "--artifacts-destination" in mlflow
+    hosts = mlflow.split("--allowed-hosts", 1)[1].split()[0].split(",")
+    assert {"localhost:5000", "127.0.0.1:5000"} <= set(hosts)  # the UI through an SSH tunnel
+    assert head["x-gopre"]["environment"]["MLFLOW_TRACKING_URI"] == "http://127.0.0.1:5000"
+    assert {"psycopg", "psycopg-binary", "aiohttp-cors", "grpcio"} <= set(read_lock())  # server, dashboard, client
+
+
+def test_the_image_records_its_commit_and_its_python_is_the_locks():
+    dockerfile = (DOCKER / "Dockerfile").read_text()
+    base = re.search(r"^ARG BASE=python:(\d+)\.(\d+)", dockerfile, re.M)
+    assert base and (int(base[1]), int(base[2])) >= (3, 11)  # numpy 2.4, pandas 3, scipy 1.17
+    pyproject = (PACKAGE_ROOT / "pyproject.toml").read_text()
+    assert re.search(r'requires-python = ">=3\.11"', pyproject)
+    assert "ARG GIT_COMMIT" in dockerfile and "GOPRE_CODE_VERSION=${GIT_COMMIT}" in dockerfile
+    assert 'torch==${TORCH_VERSION}' in dockerfile and f"ARG TORCH_VERSION={read_lock()['torch']}" in dockerfile
+    for path in COMPOSE_FILES:
+        for name, service in gopre_services(load(path)).items():
+            assert service["build"]["args"]["GIT_COMMIT"].startswith("${GIT_COMMIT"), f"{path.name} {name}"
+
+
+def dockerignored(path: str, patterns: list[str]) -> bool:
+    """Whether .dockerignore's patterns (the last match wins, '!' re-includes) leave ``path`` out;
+    enough of Docker's matcher for '*', a leading '**/' and folder prefixes."""
+    out = False
+    for pattern in patterns:
+        negate = pattern.startswith("!")
+        pattern = pattern[1:] if negate else pattern
+        regex = re.escape(pattern.rstrip("/")).replace(r"\*\*/", "(.*/)?").replace(r"\*", "[^/]*")
+        if re.fullmatch(regex + "(/.*)?", path):
+            out = not negate
+    return out
+
+
+def test_the_build_context_is_what_the_image_copies_and_nothing_else():
+    patterns = [ln.strip() for ln in (PACKAGE_ROOT / ".dockerignore").read_text().splitlines()
+                if ln.strip() and not ln.startswith("#")]
+    copied = [w for line in (DOCKER / "Dockerfile").read_text().splitlines() if line.startswith("COPY ")
+              for w in line.split()[1:-1]]
+    assert copied and all(not dockerignored(p.rstrip("/"), patterns) for p in copied), copied
+    for left_out in (".venv/bin/python", "outputs/demo/records.parquet", "reports/paper/README.md", ".git/HEAD",
+                     "pipeline/splat/__pycache__/kernels.cpython-311.pyc", "site/index.html", "tests/test_deploy.py"):
+        assert dockerignored(left_out, patterns), left_out
+    assert not dockerignored("pipeline/splat/kernels.py", patterns)
+
+
+def test_an_image_without_git_reports_the_commit_it_was_built_from(tmp_path, monkeypatch):
+    code_version.cache_clear()
+    monkeypatch.setenv("GOPRE_CODE_VERSION", "0123456789ab")
+    try:
+        assert code_version(tmp_path / "app") == "0123456789ab"  # no .git in an image
+        assert code_version(PACKAGE_ROOT) != "0123456789ab"      # a checkout's own commit wins
+        monkeypatch.setenv("GOPRE_CODE_VERSION", "unknown")        # built without --build-arg GIT_COMMIT
+        code_version.cache_clear()
+        assert code_version(tmp_path / "app").startswith("gopre ")
+    finally:
+        code_version.cache_clear()
+
+
+def kuberay_documents() -> list[dict]:
+    kustomization = load(KUBERAY / "kustomization.yaml")
+    docs = []
+    for resource in kustomization["resources"]:
+        docs += [d for d in yaml.safe_load_all((KUBERAY / resource).read_text()) if d]
+    return docs
+
+
+def test_the_kuberay_folder_holds_everything_its_rayjob_refers_to():
+    kustomization = load(KUBERAY / "kustomization.yaml")
+    docs = kuberay_documents()
+    by_kind: dict[str, dict[str, dict]] = {}
+    for d in docs:
+        by_kind.setdefault(d["kind"], {})[d["metadata"]["name"]] = d
+    assert kustomization["namespace"] in by_kind["Namespace"]
+    (job,) = by_kind["RayJob"].values()
+    claims = {v["persistentVolumeClaim"]["claimName"] for d in docs for v in _volumes(d) if "persistentVolumeClaim" in v}
+    assert claims <= set(by_kind["PersistentVolumeClaim"]), claims - set(by_kind["PersistentVolumeClaim"])
+    shared = {by_kind["PersistentVolumeClaim"][c]["spec"]["accessModes"][0] for c in ("gopre-outputs", "gopre-data")}
+    assert shared == {"ReadWriteMany"}  # every Ray pod mounts them
+    overrides = shlex.split(job["spec"]["entrypoint"])[1:]
+    uri = next(o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri="))
+    service, port = re.fullmatch(r"http://([a-z-]+):(\d+)", uri).groups()
+    assert int(port) in {p["port"] for p in by_kind["Service"][service]["spec"]["ports"]}
+    assert by_kind["Service"][service]["spec"].get("type", "ClusterIP") == "ClusterIP"  # cluster-internal
+    secrets = {g["name"] for g in kustomization.get("secretGenerator", [])}
+    refs = {e["secretRef"]["name"] for d in docs for c in _containers(d) for e in c.get("envFrom", [])}
+    assert refs <= secrets
+    for generator in kustomization.get("secretGenerator", []):
+        for env in generator.get("envs", []):  # the real file is not committed; its example is
+            assert (KUBERAY / f"{env}.example").exists()
+    images = {i["name"] for i in kustomization["images"]}
+    assert {c["image"] for d in docs for c in _containers(d) if "gopre" in c["image"]} <= images
+
+
+def test_the_rayjob_is_what_kuberay_accepts_autoscales_as_it_says_and_runs_one_job_per_pod():
+    (job,) = [d for d in kuberay_documents() if d["kind"] == "RayJob"]
+    assert job["apiVersion"] == "ray.io/v1" and job["metadata"]["name"]
+    spec, cluster = job["spec"], job["spec"]["rayClusterSpec"]
+    assert set(spec) <= RAYJOB_SPEC and set(cluster) <= RAYCLUSTER_SPEC
+    assert set(cluster["headGroupSpec"]) <= HEAD_GROUP
+    assert set(cluster.get("autoscalerOptions", {})) <= AUTOSCALER_OPTIONS
     assert cluster["rayVersion"] == read_lock()["ray"]  # the image's Ray
-    pods = [cluster["headGroupSpec"]] + cluster["workerGroupSpecs"]
-    for pod in pods:
+    assert cluster["authOptions"]["mode"] == "token"     # the head Service's Jobs API needs the token
+    groups = cluster["workerGroupSpecs"]
+    for group in groups:
+        assert set(group) <= WORKER_GROUP and group["groupName"]
+        assert group["minReplicas"] <= group["replicas"] <= group["maxReplicas"]
+    if any(g["minReplicas"] != g["maxReplicas"] for g in groups):  # a range means an autoscaler
+        assert cluster["enableInTreeAutoscaling"] is True
+    overrides = shlex.split(spec["entrypoint"])
+    assert overrides[0] == "gopre-run"
+    threads = next(int(o.split("=", 1)[1]) for o in overrides if o.startswith("job.threads="))
+    for pod in [cluster["headGroupSpec"], *groups]:
         assert all(isinstance(v, str) for v in pod["rayStartParams"].values())  # KubeRay wants strings
         (container,) = pod["template"]["spec"]["containers"]
-        assert container["image"] and container["name"]
         mounts = {m["name"]: m["mountPath"] for m in container["volumeMounts"]}
         assert mounts["outputs"] == "/app/outputs" and mounts["data"] == "/data"
-        claims = {v["name"]: v for v in pod["template"]["spec"]["volumes"]}
-        assert "persistentVolumeClaim" in claims["outputs"]  # one ReadWriteMany volume every pod shares
-    for group in cluster["workerGroupSpecs"]:
-        assert group["groupName"] and group["minReplicas"] <= group["replicas"] <= group["maxReplicas"]
-    overrides = gopre_overrides(spec["entrypoint"])
-    assert "executor=ray" in overrides and "executor.address=auto" in overrides
+    for group in groups:  # one job per worker pod: its CPUs = the job's threads = its limit
+        (container,) = group["template"]["spec"]["containers"]
+        assert int(group["rayStartParams"]["num-cpus"]) == threads == int(container["resources"]["limits"]["cpu"])
+    cfg = composed(overrides[1:])  # the sweep it launches composes (a wrong key fails here)
+    assert cfg.executor.kind == "ray" and cfg.job.threads == threads
     output_dir = next(o.split("=", 1)[1] for o in overrides if o.startswith("output_dir="))
     assert Path(output_dir).is_relative_to("/app/outputs")  # on the shared volume
-    cfg = composed(overrides)  # the sweep it launches composes (a wrong key fails here)
-    assert cfg.executor.kind == "ray" and cfg.name == "table1_global"
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl (with its kustomize) is not installed")
+def test_kustomize_builds_the_folder_and_names_the_image_everywhere(tmp_path):
+    folder = tmp_path / "kuberay"
+    shutil.copytree(KUBERAY, folder)
+    shutil.copy(folder / "postgres.env.example", folder / "postgres.env")
+    out = subprocess.run(["kubectl", "kustomize", str(folder)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    docs = [d for d in yaml.safe_load_all(out.stdout) if d]
+    assert {d["metadata"].get("namespace") for d in docs if d["kind"] != "Namespace"} == {"gopre"}
+    images = {c["image"] for d in docs for c in _containers(d)}
+    assert "gopre" not in images and any(i.endswith("/gopre:cpu") for i in images)
+
+
+def _walk(node, key):
+    if isinstance(node, dict):
+        for k, v in node.items():
+            if k == key and isinstance(v, list):
+                yield from v
+            else:
+                yield from _walk(v, key)
+    elif isinstance(node, list):
+        for item in node:
+            yield from _walk(item, key)
+
+
+def _containers(doc: dict):
+    return list(_walk(doc, "containers"))
+
+
+def _volumes(doc: dict):
+    return [v for v in _walk(doc, "volumes") if isinstance(v, dict) and "name" in v]

@@ -1,7 +1,9 @@
 """Which code produced a run, recorded on every job (records column and MLflow tag).
 
 ``code_version()``: the git commit of the checkout the package runs from, with ``-dirty`` when
-tracked files have uncommitted changes; outside a git checkout, ``gopre <installed version>``.
+tracked files have uncommitted changes; outside a git checkout (an image), the commit the image was
+built from (``GOPRE_CODE_VERSION``, which ``docker/Dockerfile`` sets from its ``GIT_COMMIT`` build
+argument), else ``gopre <installed version>``.
 A sweep relaunched after the code changed keeps its finished jobs (they are identified by what
 they compute, not by the code) and says so, naming both versions.
 
@@ -26,6 +28,7 @@ from pathlib import Path
 PACKAGE_ROOT = Path(__file__).resolve().parents[2]
 LOCK_FILE = PACKAGE_ROOT / "requirements.lock"
 OWN_DISTRIBUTION = "gopre"
+CODE_VERSION_ENV = "GOPRE_CODE_VERSION"  # an image's commit (docker/Dockerfile's GIT_COMMIT build argument)
 INSTALLERS = {"pip", "setuptools", "wheel"}  # what installs packages, not what runs (pip freeze omits them)
 
 
@@ -43,6 +46,9 @@ def code_version(root: Path = PACKAGE_ROOT) -> str:
     if commit:
         dirty = _git(root, "status", "--porcelain", "--untracked-files=no")
         return commit + ("-dirty" if dirty else "")
+    baked = os.environ.get(CODE_VERSION_ENV, "").strip()
+    if baked and baked != "unknown":
+        return baked
     try:
         return f"gopre {metadata.version('gopre')}"
     except metadata.PackageNotFoundError:
