@@ -361,8 +361,8 @@ def test_a_tracking_server_that_goes_away_loses_nothing_and_a_sync_replays_it(ba
     uri = f"http://127.0.0.1:{port}"
     out = base / "server_down"
     overrides = ["experiment=debug", *TINY, "method=[random,coverage]", "seeds=[0,1]", "executor=local",
-                 "tracking=mlflow", f"tracking.uri={uri}", f"output_dir={out}"]
-    server = start_mlflow_server(tmp_path, port)
+                 "tracking=mlflow", f"tracking.uri={uri}", "tracking.replay_wait_s=0", f"output_dir={out}"]
+    server = start_mlflow_server(tmp_path, port)  # (replay_wait_s=0: the sweep does not wait for it to return)
     real_log_job = tracking_module.MlflowTracker.log_job
     calls = []
 

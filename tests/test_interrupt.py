@@ -25,7 +25,9 @@ def start(out: Path, *extra, cpus: int = 2) -> tuple[subprocess.Popen, "queue.Qu
                              "tracking=mlflow", f"output_dir={out}", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: "queue.Queue[str]" = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
+    reader = threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True)
+    reader.start()
+    lines.reader = reader  # drain() waits for it: the last lines may still be in the pipe when the driver exits
     return proc, lines
 
 
@@ -43,6 +45,14 @@ def wait_for(lines, text: str, timeout: float) -> list[str]:
 
 
 def drain(lines) -> str:
+    """Every line so far; once the driver has exited, every line it printed (the reader reaches EOF)."""
+    reader = getattr(lines, "reader", None)
+    deadline = time.monotonic() + 60
+    while reader is not None and reader.is_alive() and time.monotonic() < deadline:
+        before = lines.qsize()
+        reader.join(3.0)  # EOF; or, where a Ray process still holds the pipe, 3 s without a new line
+        if lines.qsize() == before:
+            break
     out = []
     while not lines.empty():
         out.append(lines.get())

@@ -4,6 +4,7 @@ outage mid-round is replayed, and nothing is left RUNNING. PostgreSQL comes from
 packages (`make postgres`); without it these tests skip with the reason."""
 
 import glob
+import json
 import os
 import shutil
 import subprocess
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from pipeline.experiment.layout import SweepFolder
 from tests.conftest import free_port
 from tests.test_experiment import TINY
 
@@ -122,13 +124,20 @@ def test_a_sweep_on_postgres_is_seen_whole_by_another_client(server, tmp_path):
     assert [p.info.status for p in parents] == ["FINISHED"]
 
 
-def test_an_outage_mid_round_is_replayed_and_leaves_nothing_running(server, tmp_path):
+def test_an_outage_mid_round_is_replayed_by_the_sweep_itself_and_leaves_nothing_running(server, tmp_path):
+    """The server goes down after the job's first round and comes back while the driver, its job
+    finished and untracked, waits for it: the sweep ends with the job's run FINISHED (replayed), under
+    the sweep's parent run, with every round's metrics, its worker tags and its round images, the
+    outage's partial run KILLED, and no command typed after it."""
+    import threading
+
     from mlflow import MlflowClient
 
     from pipeline.experiment.records import records_from_mlflow
     out = tmp_path / "driver"
     args = ["experiment=debug", "name=outage", *TINY, "protocol.budget=6", "splat.iterations=2400", "method=[random]",
-            "executor=local", "tracking=mlflow", f"tracking.uri={server.url}", f"output_dir={out}"]
+            "executor=local", "tracking=mlflow", f"tracking.uri={server.url}", "tracking.replay_wait_s=120",
+            "job.round_images=1", f"output_dir={out}"]
     driver = subprocess.Popen([str(BIN / "gopre-run"), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                               text=True)
     client = MlflowClient(server.url)
@@ -141,20 +150,38 @@ def test_an_outage_mid_round_is_replayed_and_leaves_nothing_running(server, tmp_
         assert driver.poll() is None, driver.stdout.read()[-3000:]
         time.sleep(0.3)
     server.stop()
-    output, _ = driver.communicate(timeout=600)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(driver.stdout), daemon=True)
+    reader.start()
+    deadline = time.time() + 300  # the job ends during the outage; the driver says it waits for the server
+    while not any("trying again every" in line for line in lines):
+        assert time.time() < deadline and driver.poll() is None, "".join(lines)[-3000:]
+        time.sleep(0.3)
+    server.start()  # back while the driver waits: nobody types anything
+    driver.wait(timeout=600)
+    reader.join(timeout=60)
+    output = "".join(lines)
     assert driver.returncode == 0, output[-3000:]
-    assert "tracking_sync=true" in output  # the driver says how to replay
-    server.start()
-    sync = run(*args, "tracking_sync=true")
-    assert sync.returncode == 0, sync.stdout[-3000:] + sync.stderr[-3000:]
-    assert "1 run(s) replayed" in sync.stdout + sync.stderr
+    assert "1 run(s) replayed" in output and "tracking_sync" not in output.split("run(s) replayed")[-1], output[-3000:]
     experiment = client.get_experiment_by_name("outage")
     every = client.search_runs([experiment.experiment_id], "")
     assert not [r for r in every if r.info.status == "RUNNING"], [(r.data.tags, r.info.status) for r in every]
     jobs = [r for r in every if r.data.tags.get("config_hash")]
     assert sorted(r.info.status for r in jobs) == ["FINISHED", "KILLED"]  # the replay, the partial run
+    (replayed,) = [r for r in jobs if r.info.status == "FINISHED"]
+    result = json.loads(SweepFolder(out).job(replayed.data.tags["config_hash"]).result_file.read_text())
+    steps = sorted(m.step for m in client.get_metric_history(replayed.info.run_id, "test_psnr"))
+    assert steps == [r["num_views"] for r in result["rounds"]]  # every round, the outage's too
+    (parent,) = [r for r in every if r.data.tags.get("kind") == "sweep"]
+    assert replayed.data.tags["mlflow.parentRunId"] == parent.info.run_id and parent.info.status == "FINISHED"
+    assert {"worker.host", "worker.code_version", "worker.packages", "worker.cpu"} <= set(replayed.data.tags)
+    images = [a.path for a in client.list_artifacts(replayed.info.run_id, "images")]
+    saved = SweepFolder(out).job(replayed.data.tags["config_hash"]).saved_round_images()
+    for step in saved:  # every round's images, from the job folder
+        assert any(f"picked+step+{step}+" in p for p in images), (step, images)
     frame = records_from_mlflow(server.url, "outage")
     final = frame.query("kind == 'final'")
     assert len(final) == 1 and final["status"].tolist() == ["FINISHED"]  # the report reads the replay
     relaunch = run(*args)
     assert relaunch.returncode == 0 and "1 already finished (skipped), 0 to run" in relaunch.stdout + relaunch.stderr
+    assert "were not in" not in relaunch.stdout + relaunch.stderr  # nothing left to replay

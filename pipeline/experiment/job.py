@@ -115,6 +115,15 @@ def generated_depth_errors(depth: torch.Tensor, alpha: torch.Tensor, cameras) ->
     return None if errors is None else errors.to_dict()
 
 
+def save_round_images(target: Path, images: dict[str, bytes]) -> None:
+    """A round's PNGs in ``target`` (each written whole, then renamed: a kill never leaves half a file)."""
+    target.mkdir(parents=True, exist_ok=True)
+    for key, png in images.items():
+        tmp = target / f".{key}.png.tmp"
+        tmp.write_bytes(png)
+        os.replace(tmp, target / f"{key}.png")
+
+
 def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
     """[H, W, 3] ground truth and render, [H, W] variance -> [H, 4W, 3]."""
     error = (render - truth).square().sum(-1)
@@ -133,17 +142,19 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
         if job.execution.round_models:  # the model that made this pick, for pipeline-view
             ply.save(ep.trainer.rendered_gaussians, JobFolder(folder).round_model(rec.round))
         count = job.execution.round_images
-        if count > 0 and report is not None:
+        if count > 0:
             pending_images[rec.round] = round_images(ep, rec, count)
 
     def on_round(rec):
         _log(folder, f"round {rec.round}: {rec.num_views} views, psnr {rec.test_psnr:.2f}, "
                      f"selected {rec.selected}, {rec.selection_seconds:.1f}s selection")
+        images = pending_images.pop(rec.round, None)
+        if images:  # kept in the job folder too: the tracker takes them from there when the message is lost
+            save_round_images(JobFolder(folder).round_images_dir(rec.num_views), images)
         if report is not None:
             message = RoundMessage.of(rec, rounds)
             message.job_started, message.curve_views = started, curve_views
-            if rec.round in pending_images:
-                message.images = pending_images.pop(rec.round)
+            message.images = images or {}
             report(message)
     def on_resume(done: int):  # a retried, interrupted or relaunched job continues where it stopped
         _log(folder, f"resuming from the checkpoint after {done} round(s)")

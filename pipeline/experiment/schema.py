@@ -92,6 +92,9 @@ class TrackingSection:
     uri: str | None = bounded(None, STR, nullable=True, pattern=TRACKING_URI,
                               pattern_hint="a path, file:, http(s)://, sqlite/postgresql/mysql/mssql:// or "
                                            "databricks")
+    # a sweep whose jobs could not be tracked (the server away) tries the replay again this long
+    # before it ends (experiment.replay); the next launch replays what is still missing
+    replay_wait_s: float = bounded(120.0, FLOAT, ge=0)
 
 
 # ``splat.*`` keys that set a typed config's field (null: the preset's value); "all" for

@@ -25,9 +25,10 @@ from pipeline.experiment.executors import make_executor, scene_key
 from pipeline.experiment.interrupt import SweepInterrupted, critical, ignore_stop_signals
 from pipeline.experiment.layout import SweepFolder
 from pipeline.experiment.lock import SweepLock, SweepLocked
-from pipeline.experiment.outcome import FINISHED, TRACEBACK_ARTIFACT, JobOutcome, RoundMessage, StepProgress
+from pipeline.experiment.outcome import TRACEBACK_ARTIFACT, JobOutcome, RoundMessage, StepProgress
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
+from pipeline.experiment.replay import replay, replay_until_taken, untracked
 from pipeline.experiment.tracking import make_tracker
 from pipeline.experiment.warmup import compile_kernels
 from pipeline.interchange.layout import cannot_write
@@ -35,6 +36,7 @@ from pipeline.splat import ply
 from pipeline.experiment.spec import Job
 
 LOG = console()
+DEFAULT_REPLAY_WAIT_S = 120.0  # tracking.replay_wait_s's default (schema.TrackingSection)
 
 
 @dataclass
@@ -339,13 +341,22 @@ class SweepRun:
 
     def run(self, stale_driver: bool = False) -> SweepSummary:
         scenes = self.prepare(stale_driver)
+        missing = untracked(self.records, self.tracker, {j.config_hash: j for j in self.jobs})
+        if self.todo or missing:
+            with critical():
+                self.tracker.start(self.resolved, len(self.todo))
+        if missing:  # finished here, not in the store (a server that was away): replayed first
+            with critical():
+                done = replay_until_taken(self.tracker, {j.config_hash: j for j in self.jobs}, self.output_dir,
+                                          self.records, missing, 0.0, lambda line: LOG.info(f"[{self.name}] {line}"))
+            LOG.info(f"[{self.name}] tracking: {len(missing)} finished job(s) were not in {self.tracker.uri}: "
+                     f"{done.line()}")
+            self.untracked += done.failed
         if self.todo and compiles_here(self.executor, self.todo):
             compile_kernels(lambda line: LOG.info(f"[{self.name}] {line}"))
         if self.todo:
             self.progress = Progress(self.name, len(self.todo), getattr(self.executor, "slots", 1))
             try:
-                with critical():
-                    self.tracker.start(self.resolved, len(self.todo))
                 self.executor.map(self.todo, scenes, self.on_done, self.on_round)
             except SweepInterrupted as stop:
                 self.interrupted(stop)
@@ -438,6 +449,15 @@ class SweepRun:
                  f"their last round checkpoint)")
 
     def finish(self) -> SweepSummary:
+        if self.untracked:  # the server went away: try again while it comes back, then say what is left
+            wait = float(self.resolved["tracking"].get("replay_wait_s", DEFAULT_REPLAY_WAIT_S))
+            with critical():
+                done = replay_until_taken(self.tracker, {j.config_hash: j for j in self.jobs}, self.output_dir,
+                                          self.records, list(dict.fromkeys(self.untracked)), wait,
+                                          lambda line: LOG.info(f"[{self.name}] {line}"))
+            if done.replayed:
+                LOG.info(f"[{self.name}] tracking: {done.line()}")
+            self.untracked = done.failed
         summary = self.summary(len(self.todo) - self.failed, untracked=self.untracked)
         try:
             self.tracker.end(asdict(summary))
@@ -447,62 +467,30 @@ class SweepRun:
         if self.untracked:
             LOG.info(f"[{self.name}] {len(self.untracked)} finished job(s) could not be tracked "
                      f"({', '.join(self.untracked)}); their results are in records.parquet and jobs/<hash>/: "
-                     f"once the tracking server is back, relaunch the same command with tracking_sync=true")
+                     f"the next launch of the same command replays them once the tracking server answers "
+                     f"(tracking_sync=true replays them without running anything)")
         self.folder.summary_file.write_text(json.dumps(asdict(summary), indent=1))
         return summary
 
 
 def sync_tracking(cfg: DictConfig) -> dict:
     """Replay into MLflow every finished job of the records that the tracking store does not have
-    as FINISHED (a tracking server that was down), from records.parquet and jobs/<hash>/artifacts.
-    Runs no job. Returns counts."""
+    as FINISHED (a tracking server that was down), from records.parquet and jobs/<hash>/. Runs no
+    job (``replay``). Returns the replayed and the unknown config hashes."""
     jobs = {j.config_hash: j for j in expand_jobs(cfg)}
     output_dir = Path(str(cfg.output_dir))
     records = RecordsFile(output_dir)
-    finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None
     resolved = OmegaConf.to_container(cfg, resolve=True)
     lock = acquire_lock(output_dir)  # no sweep may run in this folder while it is replayed
     try:
-        return _sync(cfg, jobs, output_dir, records, finals, resolved)
+        tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
+        closed = tracker.close_stale_runs()  # partial runs of the outage, the parent left open
+        have = tracker.finished_hashes()
+        finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None
+        missing = [] if finals is None else [h for h in dict.fromkeys(finals["config_hash"]) if h not in have]
+        done = replay(tracker, jobs, output_dir, records, missing)
+        LOG.info(f"[{cfg.name}] tracking sync: {done.line()} into {tracker.uri}, "
+                 f"{len(have & set(jobs))} already there, {len(closed)} left RUNNING marked KILLED")
+        return {"synced": done.replayed, "unknown": done.unknown}
     finally:
         lock.release()
-
-
-def _sync(cfg: DictConfig, jobs: dict, output_dir: Path, records: RecordsFile, finals, resolved: dict) -> dict:
-    tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
-    closed = tracker.close_stale_runs()  # partial runs of the outage, the parent left open
-    have = tracker.finished_hashes()
-    missing = [] if finals is None else [h for h in finals["config_hash"] if h not in have]
-    synced, unknown = [], []
-    for config_hash in missing:
-        job, job_folder = jobs.get(config_hash), SweepFolder(output_dir).job(config_hash)
-        folder = job_folder.artifacts
-        if job is None or not job_folder.result_file.exists():
-            unknown.append(config_hash)
-            continue
-        row = finals[finals["config_hash"] == config_hash].iloc[0]
-        artifacts = {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
-                     if p.is_file() and p != job_folder.result_file}
-        outcome = JobOutcome(FINISHED, _count(row.get("attempts")), [],
-                             json.loads(job_folder.result_file.read_text()), artifacts,
-                             _number(row.get("wall_seconds")))
-        run_id = tracker.log_job(job, outcome)
-        records.add([{**r, "run_id": run_id} for r in
-                      records.frame[records.frame["config_hash"] == config_hash].to_dict("records")])
-        synced.append(config_hash)
-    LOG.info(f"[{cfg.name}] tracking sync: {len(synced)} run(s) replayed into {tracker.uri}, "
-             f"{len(have & set(jobs))} already there, {len(closed)} left RUNNING marked KILLED"
-             + (f", {len(unknown)} not replayable (not in this sweep's config, or no jobs/<hash>/artifacts/result.json): "
-                f"{', '.join(unknown)}" if unknown else ""))
-    return {"synced": synced, "unknown": unknown}
-
-
-def _number(value) -> float | None:
-    """A records cell as a float, None when missing (NaN or None)."""
-    return None if value is None or value != value else float(value)
-
-
-def _count(value) -> int:
-    """A records cell holding an attempt count (1 when it was not recorded)."""
-    number = _number(value)
-    return 1 if number is None else int(number)

@@ -29,6 +29,7 @@ from pipeline.experiment.console import console
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
+from pipeline.interchange.layout import JobFolder
 
 TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version",
         "data_fingerprint")
@@ -91,6 +92,8 @@ class Tracker(Protocol):
     def end(self, summary: dict) -> None: ...
     def interrupt(self, summary: dict) -> None: ...
     def close_stale_runs(self) -> list[str]: ...
+    def answers(self) -> bool: ...
+    def close_orphans(self) -> None: ...
 
 
 class NoTracker:
@@ -116,6 +119,12 @@ class NoTracker:
 
     def close_stale_runs(self) -> list[str]:
         return []
+
+    def answers(self) -> bool:
+        return True
+
+    def close_orphans(self) -> None:
+        pass
 
 
 REACH_TIMEOUT_S = 5.0
@@ -166,6 +175,8 @@ class MlflowTracker:
         self.parent: str | None = None
         # config hash -> (child run opened by a round message, steps (views) it has logged)
         self.live: dict[str, tuple[str, set[int]]] = {}
+        self.imaged: dict[str, set[int]] = {}  # config hash -> steps whose round images MLflow received live
+        self.orphans: list[str] = []  # child runs a failed call left open (an outage): KILLED once it answers
 
     def _experiment(self, name: str, location: str | None) -> str:
         """The experiment's id, created if needed; two sweeps creating it at once both get it."""
@@ -247,16 +258,40 @@ class MlflowTracker:
         run_id, logged = self.live[job.config_hash]
         self._log_metrics(run_id, round_metrics(message.record))
         logged.add(message.record.num_views)
-        for key, png in message.images.items():  # MLflow's image series per step
-            import io
+        self._log_images(run_id, message.images, message.record.num_views)
+        if message.images:
+            self.imaged.setdefault(job.config_hash, set()).add(message.record.num_views)
 
-            from PIL import Image
-            self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=message.record.num_views)
+    def _log_images(self, run_id: str, images: dict[str, bytes], step: int) -> None:
+        import io
+
+        from PIL import Image
+        for key, png in images.items():  # MLflow's image series per step
+            self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=step)
+
+    def _log_saved_round_images(self, run_id: str, job: Job) -> int:
+        """The round images the job saved in its folder (``JobFolder.round_images``) that MLflow did
+        not receive live (a lost progress channel, a replay); how many steps were taken from there."""
+        received = self.imaged.pop(job.config_hash, set())
+        saved = JobFolder(Path(self.output_dir) / "jobs" / job.config_hash).saved_round_images()
+        missing = {step: files for step, files in saved.items() if step not in received}
+        for step, files in sorted(missing.items()):
+            self._log_images(run_id, {key: path.read_bytes() for key, path in files.items()}, step)
+        return len(missing)
 
     def log_job(self, job: Job, outcome: JobOutcome) -> str:
         """Complete the job's child run (the live one, else a new one) with its final state."""
+        live = job.config_hash in self.live
         run_id, logged = (self.live.pop(job.config_hash, None)
                           or (self._child_run(job, outcome.worker.get("first_started")), set()))
+        try:
+            self._complete(run_id, logged, job, outcome, live)
+        except Exception:
+            self.orphans.append(run_id)  # left open by the failure: ended KILLED once the store answers
+            raise
+        return run_id
+
+    def _complete(self, run_id: str, logged: set[int], job: Job, outcome: JobOutcome, live: bool) -> None:
         tags = {"attempts": str(outcome.attempts)}
         w = outcome.worker  # where and under what it ran (executors.worker), as the records have it
         tags.update({f"worker.{k}": str(w[k]) for k in ("host", "node", "code_version", "packages", "locked",
@@ -275,9 +310,12 @@ class MlflowTracker:
             self.client.set_tag(run_id, key, value)
         if outcome.finished:
             self._log_metrics(run_id, self._metrics(job, outcome, logged))
+            taken = self._log_saved_round_images(run_id, job)
+            if taken and live:  # a replay takes them all from there: nothing to say
+                console().info(f"{job.label}: the round images of {taken} round(s) taken from its job folder "
+                               "(MLflow did not receive them while it ran)")
         self._log_artifacts(run_id, job, outcome)
         self.client.set_terminated(run_id, outcome.status)
-        return run_id
 
     @staticmethod
     def _metrics(job: Job, outcome: JobOutcome,
@@ -308,6 +346,23 @@ class MlflowTracker:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_bytes(data)
             self.client.log_artifacts(run_id, str(folder))
+
+    def answers(self) -> bool:
+        """Whether the store answers now (a server: its /health; the embedded store: always)."""
+        try:
+            check_reachable(self.uri)
+        except Exception:
+            return False
+        return True
+
+    def close_orphans(self) -> None:
+        """End KILLED the child runs an outage left open (their jobs are replayed as new runs)."""
+        for run_id in list(self.orphans):
+            try:
+                self.client.set_terminated(run_id, "KILLED")
+            except Exception:
+                continue
+            self.orphans.remove(run_id)
 
     def close_stale_runs(self) -> list[str]:
         """Runs of this output folder left RUNNING by a driver that was killed (its lock was

@@ -8,6 +8,7 @@ no path themselves. ``pipeline.experiment.layout`` adds reading and writing the 
         log.txt
         checkpoint/episode.pt           the episode after its last finished round
         rounds/round_NN.ply             each round's model (job.round_models=true)
+        rounds/images_VVV/<key>.png     each round's images at VVV views (job.round_images > 0)
         artifacts/result.json           the episode's internal record (EpisodeResult.to_dict)
         artifacts/benchmark/result.json the portable result (this package's result schema)
         artifacts/model.ply  artifacts/renders/ ...
@@ -90,6 +91,18 @@ class JobFolder:
 
     def round_model(self, index: int) -> Path:
         return self.path / "rounds" / f"round_{index:02d}.ply"
+
+    def round_images_dir(self, views: int) -> Path:
+        """The round images (renders, variance maps, the picked view) of the round at ``views`` views."""
+        return self.path / "rounds" / f"images_{views:03d}"
+
+    def saved_round_images(self) -> dict[int, dict[str, Path]]:
+        """views -> image key -> PNG, every round whose images the job saved."""
+        out = {}
+        for folder in sorted((self.path / "rounds").glob("images_*")):
+            if folder.is_dir() and folder.name[len("images_"):].isdigit():
+                out[int(folder.name[len("images_"):])] = {p.stem: p for p in sorted(folder.glob("*.png"))}
+        return out
 
 
 @dataclass(frozen=True)
