@@ -212,3 +212,73 @@ def test_the_generated_scenes_true_depth_is_its_silhouette_and_projects_back(tmp
     hit = _intersect_reference(centre.float().expand(len(world), 3), (towards / towards.norm(dim=1, keepdim=True)).float())
     assert torch.allclose(hit.t.double(), towards.norm(dim=1), rtol=1e-4)  # the first surface on that ray, there
     assert float(z.min()) > 2.0 and float(z.max()) < 6.0  # cameras at distance 4 from an object about the origin
+
+
+def test_depth_ause_is_zero_for_an_uncertainty_that_orders_the_error_and_larger_for_a_reversed_one():
+    import torch
+
+    from pipeline.eval.depth import depth_errors
+    truth = torch.full((1, 4, 5), 2.0)
+    depth = truth + torch.arange(20, dtype=torch.float32).reshape(1, 4, 5) / 100  # error grows with the index
+    alpha = torch.ones_like(depth)
+    ordered = depth_errors(depth, alpha, truth, uncertainty=depth - truth)
+    reversed_ = depth_errors(depth, alpha, truth, uncertainty=-(depth - truth))
+    assert ordered.ause_abs_rel == pytest.approx(0.0, abs=1e-12)
+    assert reversed_.ause_abs_rel > 0.3 and depth_errors(depth, alpha, truth).ause_abs_rel is None
+
+
+def test_sparse_depth_errors_compare_each_point_with_the_pixel_it_falls_in():
+    """One 4x3 view (f = 1, principal point (2, 1.5)) of a camera turned 30 degrees about y and moved:
+    points are placed in its camera frame, sent to the world by the inverse pose, and each must be
+    compared at floor(u), floor(v) of its projection (pixel centres at .5); points behind the camera,
+    outside the image or on a transparent pixel are not scored."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.eval.depth import sparse_depth_errors
+    rot = torch.tensor(Rotation.from_euler("y", 30, degrees=True).as_matrix(), dtype=torch.float64)
+    t = torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64)
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3], vm[:3, 3] = rot, t
+    k = torch.tensor([[[1.0, 0, 2.0], [0, 1.0, 1.5], [0, 0, 1]]])
+    depth = (torch.arange(12, dtype=torch.float32).reshape(1, 3, 4) + 1.0)  # depth[y, x] = 4y + x + 1
+    alpha = torch.ones_like(depth)
+    alpha[0, 2, 3] = 0.2  # a transparent pixel
+    in_camera = torch.tensor([[-2.6, -2.2, 2.0],   # (u, v) = (0.7, 0.4): pixel (0, 0), rendered 1, truth 2
+                              [1.0, 0.4, 2.0],     # (2.5, 1.7): pixel (2, 1), rendered 7, truth 2
+                              [1.5, 1.0, 1.0],     # (3.5, 2.5): pixel (3, 2), transparent: not scored
+                              [0.0, 0.0, -1.0],    # behind the camera
+                              [10.0, 0.0, 1.0]], dtype=torch.float64)  # outside the image
+    world = (in_camera - t) @ rot  # rot^T (x - t), row by row
+    e = sparse_depth_errors(depth, alpha, vm[None].float(), k, [world])
+    assert e.pixels == 2
+    assert e.abs_rel == pytest.approx((abs(1 - 2) / 2 + abs(7 - 2) / 2) / 2, rel=1e-5)
+    assert e.rmse == pytest.approx(math.sqrt((1 + 25) / 2), rel=1e-5)
+    score = torch.zeros_like(depth)
+    score[0, 1, 2] = 1.0  # the worse point is the more uncertain one: a perfect ranking
+    assert sparse_depth_errors(depth, alpha, vm[None], k, [world], score).ause_abs_rel == pytest.approx(0.0, abs=1e-12)
+    assert sparse_depth_errors(depth, alpha, vm[None], k, [torch.zeros(0, 3)]) is None
+
+
+def test_a_colmap_scenes_observed_points_land_on_their_keypoints_at_the_working_resolution():
+    """The points each bonsai view observed, projected with the scene's own (scaled) cameras, fall
+    where COLMAP measured them: the frames, the scale and the pixel convention agree."""
+    import torch
+
+    from pipeline.data.colmap import observations, observed_points
+    from pipeline.data.load import load_scene
+    from tests.conftest import shared_scene
+    scene = load_scene(shared_scene("colmap", "bonsai"), width=200)
+    test = scene.split("test")
+    root = scene.info.get("undistorted", scene.root)
+    names = test.names[:2]
+    for name, world in zip(names, observed_points(root, names)):
+        xy, xyz = observations(root, name)
+        assert torch.allclose(world, xyz) and len(world) > 100
+        cam = test.cameras[[test.names.index(name)]]
+        c = world @ cam.viewmats[0, :3, :3].double().T + cam.viewmats[0, :3, 3].double()
+        uv = c @ cam.Ks[0].double().T
+        uv = uv[:, :2] / uv[:, 2:]
+        scale = cam.width / scene.info["model_size"][0]
+        err = (uv - xy * scale).norm(dim=1)
+        assert float(err.median()) < 2.0 * scale and (c[:, 2] > 0).all()  # within two model pixels

@@ -272,6 +272,21 @@ def capture_up(root: Path) -> str | list | None:
         raise DataError(f"{path}: orientation.choice: {err}") from None
 
 
+def observed_points(root: str | Path, image_names: list[str]) -> list["torch.Tensor"]:
+    """The world points [M, 3] (float64) each named image observed (its track's 3D points), the
+    model read once; an image the model does not have gets an empty set."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(sparse_dir(Path(root))))
+    by_name = {im.name: im for im in rec.images.values()}
+    out = []
+    for name in image_names:
+        im = by_name.get(name)
+        xyz = [list(rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()] if im else []
+        out.append(torch.tensor(xyz, dtype=torch.float64).reshape(-1, 3))
+    return out
+
+
 def observations(root: str | Path, image_name: str):
     """The 2D observations of one image and their 3D points: ([M, 2] pixels, [M, 3] points)."""
     import pycolmap

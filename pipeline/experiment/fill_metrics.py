@@ -15,7 +15,8 @@ For each finished episode job whose ``artifacts/result.json`` is version 1, the 
   ``final_ssim`` keeps its version-1 meaning, which ``records_from_mlflow`` reads as such.
 Nothing is trained or selected; a second run finds nothing to do.
 
-``fill_uncertainty``: for each finished episode whose result has no ``final.uncertainty``, the final
+``fill_uncertainty``: for each finished episode whose result lacks today's final-model measures (no
+``final.uncertainty``, or no depth errors with their AUSE on a scene that knows its depth), the final
 model is rendered on all its test views, must reproduce the recorded per-view PSNR (the same check),
 and ``job.measure_final_model`` (the code a job runs today) measures it on the job's first ``renders``
 test views with the posterior of the views it took (``selected_views``' initial + selected, as the
@@ -108,7 +109,7 @@ def fill_uncertainty(folder: str | Path, data_root: str | None = None,
         if job.kind != "episode" or not layout.result_file.exists():
             continue
         episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
-        if episode.final.uncertainty is not None or job.renders == 0:
+        if measured_already(job, episode) or job.renders == 0:
             report.current.append(job.config_hash)
             continue
         try:
@@ -124,6 +125,16 @@ def fill_uncertainty(folder: str | Path, data_root: str | None = None,
         progress(f"{job.method} on {job.scene} (seed {job.seed}): AUSE MAE {unc['ause_mae_max']:.3f} (max-norm.), "
                  f"NLL {unc['nll']:.2f}, AUCE {unc['auce']:.3f}")
     return report
+
+
+def measured_already(job: Job, episode: EpisodeResult) -> bool:
+    """Whether the episode has today's final-model measures: the uncertainty, and the depth errors
+    with their AUSE where the scene knows its depth (generated, COLMAP)."""
+    final = episode.final
+    if final.uncertainty is None:
+        return False
+    knows_depth = job.generate is not None or job.format == "colmap"
+    return not knows_depth or (final.depth is not None and "ause_abs_rel" in final.depth)
 
 
 def measured_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_root: str | None,

@@ -34,7 +34,8 @@ from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress
 from pipeline.data.synthetic import depth_truth
 from pipeline.eval.camera_path import picked_path
-from pipeline.eval.depth import depth_errors
+from pipeline.eval.depth import depth_errors, sparse_depth_errors
+from pipeline.data.colmap import observed_points
 from pipeline.eval.model_uncertainty import pixel_uncertainty
 from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
@@ -106,13 +107,6 @@ def round_images(ep, rec, count: int) -> dict[str, bytes]:
         image = ep.acquired.image(view) if ep.acquired.is_acquired(view) else ep.pool.images[view]
         out["picked" if k == 0 else f"picked_{k + 1}"] = png_bytes(image)
     return out
-
-
-def generated_depth_errors(depth: torch.Tensor, alpha: torch.Tensor, cameras) -> dict | None:
-    """The final model's rendered depth and alpha [C, H, W] on ``cameras`` against the generated
-    scene's true depth there."""
-    errors = depth_errors(depth, alpha, depth_truth(cameras))
-    return None if errors is None else errors.to_dict()
 
 
 def save_round_images(target: Path, images: dict[str, bytes]) -> None:
@@ -217,9 +211,27 @@ def measure_final_model(result: EpisodeResult, scene: Scene, rendered: RenderOut
     background = scene.background.to(result.gaussians.means)
     variance = channel_variance_maps(result.gaussians, taken, views.cameras[ids], background).to(preds)
     result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
-    if generated:  # the shown views are the first test views: their depth is rendered already
-        result.final.depth = generated_depth_errors(rendered.depth[:shown], rendered.alpha[:shown], views.cameras[ids])
+    # the shown views are the first test views: their depth is rendered already
+    result.final.depth = final_depth_errors(scene, views, ids, rendered.depth[:shown], rendered.alpha[:shown],
+                                            variance.sum(-1), generated)
     return variance
+
+
+def final_depth_errors(scene: Scene, views, ids: list[int], depth: torch.Tensor, alpha: torch.Tensor,
+                       uncertainty: torch.Tensor, generated: bool) -> dict | None:
+    """The rendered depth [S, H, W] of the test views ``ids`` against what the scene knows of its
+    depth: the generated scene's ray-cast truth, a COLMAP scene's points each view observed; None
+    for a scene without either (a Blender scene)."""
+    if generated:
+        errors = depth_errors(depth, alpha, depth_truth(views.cameras[ids]), uncertainty)
+    elif scene.format == "colmap":
+        model_root = scene.info.get("undistorted", scene.root)  # the model the cameras were read from
+        points = observed_points(model_root, [views.names[i] for i in ids])
+        cams = views.cameras[ids]
+        errors = sparse_depth_errors(depth, alpha, cams.viewmats, cams.Ks, points, uncertainty)
+    else:
+        return None
+    return None if errors is None else errors.to_dict()
 
 
 def run_uncertainty_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:

@@ -217,9 +217,12 @@ def uncertainty_table(final: pd.DataFrame, title: str, methods: list[str]) -> li
         "AaltoML's released code), start-norm. = divided by the error of all pixels, fractions in [0, 0.999], "
         "zero-error pixels dropped (3DGS-Uncertainty's). NLL: Gaussian, sigma floored at 0.03 (AaltoML). AUCE: "
         "the area under |coverage - (1 - alpha)| over alpha in 0.01 ... 0.99. Pearson and Spearman: summed variance "
-        "against MAE. Lower is better for AUSE, NLL and AUCE, higher for the correlations. Depth (the generated "
-        "scene only, whose true depth is ray-cast): absolute relative error and RMSE of the rendered depth where "
-        "the surface is and the model is opaque (alpha >= 0.5).")
+        "against MAE. Lower is better for AUSE, NLL and AUCE, higher for the correlations. Depth: absolute "
+        "relative error and RMSE of the rendered depth where the model is opaque (alpha >= 0.5), against the "
+        "generated scene's ray-cast depth (every pixel its surface covers) or a COLMAP scene's structure-from-motion "
+        "points (each test view's own observed points, at the pixel each falls in; RMSE in the model's units); "
+        "Depth AUSE: the absolute relative depth error sparsified by the summed colour variance (no depth "
+        "variance is computed), max-norm. (FisherRF's depth AUSE). A Blender scene has no depth to compare.")
     return [table]
 
 

@@ -21,10 +21,11 @@ from pipeline.report.stats import verdict
 LOWER_IS_BETTER = {"lpips", "per_candidate_ms", "selection_seconds", "selection_cpu_seconds",
                    "ause", "wall_seconds", "unc_ause_mae_max", "unc_ause_mae_start", "unc_ause_rmse_max",
                    "unc_ause_rmse_start", "unc_ause_dssim_max", "unc_ause_dssim_start", "unc_nll", "unc_auce",
-                   "path_length", "depth_abs_rel", "depth_rmse"}
+                   "path_length", "depth_abs_rel", "depth_rmse", "depth_ause_abs_rel"}
 # the final model's pixel-level uncertainty (pipeline.eval.model_uncertainty; records columns unc_*)
 UNCERTAINTY_METRICS = ["unc_ause_mae_max", "unc_ause_mae_start", "unc_ause_rmse_max", "unc_ause_dssim_start",
-                       "unc_nll", "unc_auce", "unc_pearson", "unc_spearman", "depth_abs_rel", "depth_rmse"]
+                       "unc_nll", "unc_auce", "unc_pearson", "unc_spearman", "depth_abs_rel", "depth_rmse",
+                       "depth_ause_abs_rel"]
 METRIC_LABELS = {"psnr": "PSNR", "psnr_auc": "PSNR area", "ssim": "SSIM", "ssim_skimage": "SSIM (skimage)", "lpips": "LPIPS",
                  "per_candidate_ms": "Per-cand. (ms)",
                  "selection_seconds": "Selection (s)", "selection_cpu_seconds": "Selection CPU (s / round)",
@@ -33,7 +34,7 @@ METRIC_LABELS = {"psnr": "PSNR", "psnr_auc": "PSNR area", "ssim": "SSIM", "ssim_
                  "unc_ause_rmse_max": "AUSE RMSE (max-norm.)", "unc_ause_dssim_start": "AUSE DSSIM (start-norm.)",
                  "unc_nll": "NLL", "unc_auce": "AUCE", "unc_pearson": "Pearson r", "unc_spearman": "Spearman ρ",
                  "path_length": "Camera path (pool diameters)", "depth_abs_rel": "Depth abs rel",
-                 "depth_rmse": "Depth RMSE"}
+                 "depth_rmse": "Depth RMSE", "depth_ause_abs_rel": "Depth AUSE"}
 DIGITS = {**{m: 3 for m in UNCERTAINTY_METRICS}, "unc_nll": 2, "path_length": 2, "psnr": 2, "psnr_auc": 2, "ssim": 3,
           "ssim_skimage": 3, "lpips": 3, "per_candidate_ms": 1, "selection_seconds": 2, "ause": 3,
           "wall_seconds": 0, "selection_cpu_seconds": 2}
