@@ -85,14 +85,21 @@ def test_filling_a_version_1_sweep_gives_back_what_the_episode_computes(current_
     assert (again.filled, sorted(again.current)) == ([], sorted(now.index))
 
 
-def test_a_model_that_is_not_the_scored_one_is_refused_and_left_alone(current_sweep, tmp_path, capsys):
-    old = as_version_1(current_sweep, tmp_path / "old")
+def swapped_models_fill(old, capsys) -> tuple[str, str, bytes, str]:
+    """Job a's model replaced by job b's, then `gopre-eval --sweep`: (a, b, a's result.json before,
+    the output); the fill must refuse a and exit 1."""
     sweep = SweepFolder(old)
     a, b = sorted(finals(old).index)
-    shutil.copy(sweep.job(b).model_file, sweep.job(a).model_file)  # a's model replaced by b's
+    shutil.copy(sweep.job(b).model_file, sweep.job(a).model_file)
     untouched = sweep.job(a).result_file.read_bytes()
     assert eval_main(["--sweep", str(old)]) == 1
-    out = capsys.readouterr().out
+    return a, b, untouched, capsys.readouterr().out
+
+
+def test_a_model_that_is_not_the_scored_one_is_refused_and_left_alone(current_sweep, tmp_path, capsys):
+    old = as_version_1(current_sweep, tmp_path / "old")
+    a, b, untouched, out = swapped_models_fill(old, capsys)
+    sweep = SweepFolder(old)
     assert "1 filled, 0 already current, 1 refused" in out and f"refused {a}" in out
     assert "does not reproduce the recorded PSNR" in out
     assert sweep.job(a).result_file.read_bytes() == untouched
@@ -156,12 +163,8 @@ def test_filling_a_sweep_recorded_without_uncertainty_gives_back_what_the_episod
 
 def test_an_uncertainty_fill_refuses_a_model_that_is_not_the_scored_one(current_sweep, tmp_path, capsys):
     old = as_before_uncertainty(current_sweep, tmp_path / "old")
+    a, b, untouched, out = swapped_models_fill(old, capsys)
     sweep = SweepFolder(old)
-    a, b = sorted(finals(old).index)
-    shutil.copy(sweep.job(b).model_file, sweep.job(a).model_file)
-    untouched = sweep.job(a).result_file.read_bytes()
-    assert eval_main(["--sweep", str(old)]) == 1
-    out = capsys.readouterr().out
     assert "uncertainty, camera path, depth: 1 filled, 0 already current, 1 refused" in out
     assert sweep.job(a).result_file.read_bytes() == untouched
     frame = finals(old)

@@ -66,65 +66,60 @@ def read_jobs(sweep: SweepFolder) -> list[Job]:
     return sweep.read_jobs()
 
 
-def fill_ssim(folder: str | Path, data_root: str | None = None,
-              progress: Callable[[str], None] = lambda line: None) -> FillReport:
+Fill = Callable[[Job, JobFolder, EpisodeResult, "str | None", dict], EpisodeResult]
+Rows = Callable[[pd.DataFrame, str, EpisodeResult], list[dict]]
+
+
+def fill_each(folder: str | Path, data_root: str | None, current: Callable[[Job, EpisodeResult], bool],
+              fill: Fill, rows: Rows, said: Callable[[Job, EpisodeResult], str],
+              progress: Callable[[str], None]) -> FillReport:
+    """Every finished episode of the sweep that is not ``current``: ``fill`` computes what it lacks
+    (a ValueError refuses it, leaving it as it was), then its result.json and its records rows
+    (``rows``) are written and ``said`` is printed."""
     sweep = SweepFolder(Path(folder))
     records = RecordsFile(sweep.path)
     report = FillReport()
     scenes: dict = {}  # (scene, width) -> Scene: a sweep's jobs share a few scenes
     for job in read_jobs(sweep):
-        if job.kind != "episode":
-            continue
         layout = sweep.job(job.config_hash)
-        if not layout.result_file.exists():
+        if job.kind != "episode" or not layout.result_file.exists():
             continue
         episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
-        if episode.final.metrics_version >= METRICS_VERSION:
+        if current(job, episode):
             report.current.append(job.config_hash)
             continue
         try:
-            filled = filled_episode(job, layout, episode, data_root, scenes)
+            filled = fill(job, layout, episode, data_root, scenes)
         except ValueError as err:
             report.refused[job.config_hash] = str(err)
             continue
         write_result(layout, filled)
         if not records.frame.empty:
-            records.add(filled_rows(records.frame, job.config_hash, filled))
+            records.add(rows(records.frame, job.config_hash, filled))
         report.filled.append(job.config_hash)
-        progress(f"{job.method} on {job.scene} (seed {job.seed}): SSIM {filled.final.ssim:.4f} "
-                 f"(scikit-image {filled.final.ssim_skimage:.4f})")
+        progress(said(job, filled))
     return report
+
+
+def fill_ssim(folder: str | Path, data_root: str | None = None,
+              progress: Callable[[str], None] = lambda line: None) -> FillReport:
+    """The 3DGS SSIM of every episode recorded before metrics version 2; see the module docstring."""
+    return fill_each(folder, data_root, lambda job, ep: ep.final.metrics_version >= METRICS_VERSION,
+                     filled_episode, filled_rows,
+                     lambda job, ep: (f"{job.method} on {job.scene} (seed {job.seed}): SSIM {ep.final.ssim:.4f} "
+                                      f"(scikit-image {ep.final.ssim_skimage:.4f})"), progress)
 
 
 def fill_uncertainty(folder: str | Path, data_root: str | None = None,
                      progress: Callable[[str], None] = lambda line: None) -> FillReport:
     """Measure the final model's uncertainty (and camera path, and depth where known) of every
     finished episode recorded without it; see the module docstring."""
-    sweep = SweepFolder(Path(folder))
-    records = RecordsFile(sweep.path)
-    report = FillReport()
-    scenes: dict = {}
-    for job in read_jobs(sweep):
-        layout = sweep.job(job.config_hash)
-        if job.kind != "episode" or not layout.result_file.exists():
-            continue
-        episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
-        if measured_already(job, episode) or job.renders == 0:
-            report.current.append(job.config_hash)
-            continue
-        try:
-            measured = measured_episode(job, layout, episode, data_root, scenes)
-        except ValueError as err:
-            report.refused[job.config_hash] = str(err)
-            continue
-        write_result(layout, measured)
-        if not records.frame.empty:
-            records.add(measured_rows(records.frame, job.config_hash, measured))
-        report.filled.append(job.config_hash)
-        unc = measured.final.uncertainty or {}
-        progress(f"{job.method} on {job.scene} (seed {job.seed}): AUSE MAE {unc['ause_mae_max']:.3f} (max-norm.), "
-                 f"NLL {unc['nll']:.2f}, AUCE {unc['auce']:.3f}")
-    return report
+    def said(job: Job, ep: EpisodeResult) -> str:
+        unc = ep.final.uncertainty or {}
+        return (f"{job.method} on {job.scene} (seed {job.seed}): AUSE MAE {unc['ause_mae_max']:.3f} (max-norm.), "
+                f"NLL {unc['nll']:.2f}, AUCE {unc['auce']:.3f}")
+    return fill_each(folder, data_root, lambda job, ep: measured_already(job, ep) or job.renders == 0,
+                     measured_episode, measured_rows, said, progress)
 
 
 def measured_already(job: Job, episode: EpisodeResult) -> bool:
@@ -148,24 +143,34 @@ def measured_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_r
         raise ValueError(f"{layout.result_file}: views taken in a capture world (their cameras are not kept)")
     if job.masks:
         raise ValueError(f"{layout.result_file}: a masked episode (its PSNR is over the masks; not checked here)")
+    scene, model, _ = scored_model(job, layout, episode, data_root, scenes, ssim=False)
+    test, ids = scene.split(episode.test_split), episode.test_ids
+    with torch.no_grad():
+        rendered = render(model, test.cameras[ids], scene.background.to(model.means))
+    out = replace(episode, final=replace(episode.final), gaussians=model)
+    measure_final_model(out, scene, rendered, min(job.renders, len(ids)), job.generate is not None)
+    return replace(out, gaussians=None)
+
+
+def scored_model(job: Job, layout: JobFolder, episode: EpisodeResult, data_root: str | None, scenes: dict,
+                 ssim: bool):
+    """(the scene, the final model, its metrics on the episode's test views) once the model
+    reproduces the recorded per-view PSNR (to ``PSNR_TOLERANCE_DB``), else ValueError: not the
+    model that was scored. ``scenes`` caches the scenes read so far."""
+    if not layout.model_file.exists():
+        raise ValueError(f"no {layout.model_file}")
     key = (job.scene_path, episode.scene, job.episode.fit.image_width)
     if key not in scenes:
         scenes[key] = scene_of(job, {"scene": episode.scene}, None, data_root)
     scene = scenes[key]
-    test = scene.split(episode.test_split)
-    ids = episode.test_ids
+    test, ids = scene.split(episode.test_split), episode.test_ids
     model = ply.load(layout.model_file)
-    background = scene.background.to(model.means)
-    psnr = evaluate_views(model, test.cameras[ids], test.images.stack(ids), background, ssim=False).psnr
-    psnr_gap = float(np.max(np.abs(np.subtract(psnr, episode.final.per_view_psnr))))
+    m = evaluate_views(model, test.cameras[ids], test.images.stack(ids), scene.background.to(model.means), ssim=ssim)
+    psnr_gap = float(np.max(np.abs(np.subtract(m.psnr, episode.final.per_view_psnr))))
     if not psnr_gap <= PSNR_TOLERANCE_DB:
         raise ValueError(f"{layout.model_file} does not reproduce the recorded PSNR (largest per-view "
                          f"gap {psnr_gap:.3g} dB): not the model that was scored")
-    with torch.no_grad():
-        rendered = render(model, test.cameras[ids], background)
-    out = replace(episode, final=replace(episode.final), gaussians=model)
-    measure_final_model(out, scene, rendered, min(job.renders, len(ids)), job.generate is not None)
-    return replace(out, gaussians=None)
+    return scene, model, m
 
 
 def measured_rows(frame: pd.DataFrame, config_hash: str, episode: EpisodeResult) -> list[dict]:
@@ -184,22 +189,8 @@ def filled_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_roo
     """The episode with its final 3DGS SSIM computed from ``artifacts/model.ply``; ValueError when
     the model does not reproduce the recorded PSNR and scikit-image SSIM. ``scenes`` caches the
     scenes read so far."""
-    if not layout.model_file.exists():
-        raise ValueError(f"no {layout.model_file}")
-    scenes = {} if scenes is None else scenes
-    key = (job.scene_path, episode.scene, job.episode.fit.image_width)
-    if key not in scenes:
-        scenes[key] = scene_of(job, {"scene": episode.scene}, None, data_root)
-    scene = scenes[key]
-    test = scene.split(episode.test_split)
-    ids = episode.test_ids
-    model = ply.load(layout.model_file)
-    m = evaluate_views(model, test.cameras[ids], test.images.stack(ids), scene.background.to(model.means))
+    _, _, m = scored_model(job, layout, episode, data_root, {} if scenes is None else scenes, ssim=True)
     final = episode.final
-    psnr_gap = float(np.max(np.abs(np.subtract(m.psnr, final.per_view_psnr))))
-    if not psnr_gap <= PSNR_TOLERANCE_DB:
-        raise ValueError(f"{layout.model_file} does not reproduce the recorded PSNR (largest per-view "
-                         f"gap {psnr_gap:.3g} dB): not the model that was scored")
     if final.per_view_ssim_skimage is not None:
         ssim_gap = float(np.max(np.abs(np.subtract(m.ssim_skimage, final.per_view_ssim_skimage))))
         if not ssim_gap <= SSIM_TOLERANCE:
