@@ -342,11 +342,9 @@ class SweepRun:
     def run(self, stale_driver: bool = False) -> SweepSummary:
         scenes = self.prepare(stale_driver)
         missing = untracked(self.records, self.tracker, {j.config_hash: j for j in self.jobs})
-        if self.todo or missing:
-            with critical():
-                self.tracker.start(self.resolved, len(self.todo))
         if missing:  # finished here, not in the store (a server that was away): replayed first
             with critical():
+                self.tracker.start(self.resolved, len(self.todo))
                 done = replay_until_taken(self.tracker, {j.config_hash: j for j in self.jobs}, self.output_dir,
                                           self.records, missing, 0.0, lambda line: LOG.info(f"[{self.name}] {line}"))
             LOG.info(f"[{self.name}] tracking: {len(missing)} finished job(s) were not in {self.tracker.uri}: "
@@ -357,6 +355,9 @@ class SweepRun:
         if self.todo:
             self.progress = Progress(self.name, len(self.todo), getattr(self.executor, "slots", 1))
             try:
+                if not missing:  # (the replay above opened the sweep's run already)
+                    with critical():
+                        self.tracker.start(self.resolved, len(self.todo))
                 self.executor.map(self.todo, scenes, self.on_done, self.on_round)
             except SweepInterrupted as stop:
                 self.interrupted(stop)
