@@ -164,3 +164,4 @@ def test_a_job_the_store_refuses_is_left_for_the_next_try_and_the_others_go_on(f
     assert done.replayed == [second, first] and tracker.logged == [second, first]
     unknown = replay_until_taken(Flaky(1), {}, out, RecordsFile(out), [first], 0.0, lambda _: None)
     assert unknown.unknown == [first] and "not replayable" in unknown.line()
+

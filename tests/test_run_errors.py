@@ -109,3 +109,15 @@ def test_an_output_path_that_cannot_be_written_is_one_line_before_any_work(comma
     proc = subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert f"{bad}" in proc.stderr and "cannot write there (Not a directory)" in proc.stderr, proc.stderr
+
+
+def test_more_threads_than_this_machines_cores_is_said_before_the_jobs_run():
+    from types import SimpleNamespace
+
+    from pipeline.experiment.sweep import more_threads_than_cores
+    jobs = [SimpleNamespace(execution=SimpleNamespace(threads=t)) for t in (1, 1000)]
+    here, there = SimpleNamespace(runs_here=True), SimpleNamespace(runs_here=False)
+    line = more_threads_than_cores(here, jobs, cores=2)
+    assert line.startswith("warning: job.threads=1000") and "has 2 cores" in line and "job.threads=2" in line
+    assert more_threads_than_cores(there, jobs, cores=2) is None  # a cluster's nodes have their own cores
+    assert more_threads_than_cores(here, jobs[:1], cores=2) is None and more_threads_than_cores(here, [], 2) is None

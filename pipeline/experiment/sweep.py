@@ -8,6 +8,7 @@ checkpoints its episode after every round, so a killed sweep loses no finished w
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -272,6 +273,17 @@ def no_device_here(executor, jobs: list[Job]) -> None:
                           "whose nodes have GPUs (executor.address / executor=slurm)")
 
 
+def more_threads_than_cores(executor, jobs: list[Job], cores: int | None = None) -> str | None:
+    """The warning for jobs that run on this machine with more threads than it has cores (each
+    job would oversubscribe the CPU, slower than asking for what is there); None when they fit."""
+    cores = cores or os.cpu_count() or 1
+    wanted = max((j.execution.threads for j in jobs), default=0)
+    if not executor.runs_here or wanted <= cores:
+        return None
+    return (f"warning: job.threads={wanted}, but the jobs run on this machine, which has {cores} cores: each "
+            f"job will share them (job.threads={cores} uses them all)")
+
+
 def compiles_here(executor, jobs: list[Job]) -> bool:
     """The jobs run on this machine's CPU (``executor.runs_here``): compile the kernels here first
     when their cache is missing. Jobs on a cluster compile on their nodes."""
@@ -388,6 +400,9 @@ class SweepRun:
         self.folder.write_jobs(self.jobs)
         self.executor = make_executor(self.resolved["executor"], self.output_dir)
         no_device_here(self.executor, self.todo)
+        oversubscribed = more_threads_than_cores(self.executor, self.todo)
+        if oversubscribed:
+            LOG.warning(f"[{self.name}] {oversubscribed}")
         return scenes
 
     def supersede_changed_data(self) -> None:
