@@ -165,3 +165,17 @@ def test_a_job_the_store_refuses_is_left_for_the_next_try_and_the_others_go_on(f
     unknown = replay_until_taken(Flaky(1), {}, out, RecordsFile(out), [first], 0.0, lambda _: None)
     assert unknown.unknown == [first] and "not replayable" in unknown.line()
 
+
+
+def test_an_executor_that_refuses_to_run_leaves_no_mlflow_run_running(tmp_path, monkeypatch):
+    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.executors.local import LocalExecutor
+
+    def refuse(self, jobs, scenes, on_done, on_round=None):  # as a node probe that names a node does
+        raise ConfigError("executor: node n1 cannot read /data")
+    monkeypatch.setattr(LocalExecutor, "map", refuse)
+    out = tmp_path / "s"
+    with pytest.raises(ConfigError, match="node n1"):
+        run_sweep(composed([*SWEEP, "tracking=mlflow", f"output_dir={out}"]))
+    _, runs, parents = mlflow_runs(out)
+    assert [p.info.status for p in parents] == ["FAILED"] and runs == []

@@ -374,6 +374,14 @@ class SweepRun:
             except SweepInterrupted as stop:
                 self.interrupted(stop)
                 raise
+            except Exception:  # the executor refused to run (a node's probe, auth): no run stays RUNNING
+                with critical():
+                    try:
+                        self.tracker.end({"failed": len(self.todo) - self.progress.done + self.failed})
+                    except Exception as err:  # the error that stopped the sweep is the one to say
+                        LOG.warning(f"[{self.name}] warning: could not close the sweep's MLflow run: "
+                                    f"{str(err).splitlines()[0][:300]}")
+                raise
         return self.finish()
 
     def prepare(self, stale_driver: bool) -> dict[str, Scene]:
