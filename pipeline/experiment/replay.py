@@ -58,13 +58,13 @@ def finished_rows(records: RecordsFile) -> pd.DataFrame:
     return frame.query("kind == 'final' and status == 'FINISHED'")
 
 
-def untracked(records: RecordsFile, tracker: Tracker, jobs: dict[str, Job]) -> list[str]:
-    """This sweep's jobs finished in the records that the store does not have as FINISHED."""
+def finished_not_in(records: RecordsFile, have: set[str]) -> list[str]:
+    """The config hashes the records have as finished that are not in ``have`` (the store's
+    FINISHED runs), in records order."""
     finals = finished_rows(records)
-    if finals.empty or not getattr(tracker, "uri", None):
+    if finals.empty:
         return []
-    have = tracker.finished_hashes()
-    return [h for h in dict.fromkeys(finals["config_hash"]) if h in jobs and h not in have]
+    return [h for h in dict.fromkeys(finals["config_hash"]) if h not in have]
 
 
 def outcome_of(job_folder, row: pd.Series) -> JobOutcome:
@@ -72,8 +72,8 @@ def outcome_of(job_folder, row: pd.Series) -> JobOutcome:
     folder = job_folder.artifacts
     artifacts = {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
                  if p.is_file() and p != job_folder.result_file}
-    worker = {key: _plain(row.get(column)) for key, column in WORKER_COLUMNS.items()
-              if _plain(row.get(column)) is not None}
+    cells = {key: _plain(row.get(column)) for key, column in WORKER_COLUMNS.items()}
+    worker = {key: value for key, value in cells.items() if value is not None}
     return JobOutcome(FINISHED, _count(row.get("attempts")), [], json.loads(job_folder.result_file.read_text()),
                       artifacts, _number(row.get("wall_seconds")), worker=worker)
 
@@ -105,26 +105,24 @@ def replay_until_taken(tracker: Tracker, jobs: dict[str, Job], output_dir: Path,
                        hashes: list[str], wait_s: float, say: Callable[[str], None],
                        sleep: Callable[[float], None] = time.sleep) -> Replay:
     """``replay``, tried again every ``RETRY_EVERY_S`` while some are refused, for up to ``wait_s``."""
-    tries_left = 1 + int(wait_s // RETRY_EVERY_S)  # the first try, then one every RETRY_EVERY_S within wait_s
+    attempts = 1 + int(wait_s // RETRY_EVERY_S)  # the first try, then one every RETRY_EVERY_S within wait_s
     total = Replay()
     left = list(hashes)
-    tries = 0
-    while True:
-        tries += 1
-        tries_left -= 1
+    for attempt in range(attempts):
         if tracker.answers():  # no half-written run while the server is away
             tracker.close_orphans()  # the runs the outage left open end KILLED (the replay replaces them)
             done = replay(tracker, jobs, output_dir, records, left)
             total.replayed += done.replayed
             total.unknown += done.unknown
             left = done.failed
-        if not left or tries_left <= 0:
-            total.failed = left
-            return total
-        if tries == 1:
+        if not left or attempt == attempts - 1:
+            break
+        if attempt == 0:
             say(f"tracking: the server does not take {len(left)} finished run(s) yet; trying again every "
                 f"{RETRY_EVERY_S:.0f} s for up to {wait_s:.0f} s (tracking.replay_wait_s)")
         sleep(RETRY_EVERY_S)
+    total.failed = left
+    return total
 
 
 def _plain(value):

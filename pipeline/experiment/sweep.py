@@ -29,7 +29,7 @@ from pipeline.experiment.lock import SweepLock, SweepLocked
 from pipeline.experiment.outcome import TRACEBACK_ARTIFACT, JobOutcome, RoundMessage, StepProgress
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
-from pipeline.experiment.replay import replay, replay_until_taken, untracked
+from pipeline.experiment.replay import finished_not_in, replay, replay_until_taken
 from pipeline.experiment.tracking import make_tracker
 from pipeline.experiment.warmup import compile_kernels
 from pipeline.interchange.layout import cannot_write
@@ -350,15 +350,19 @@ class SweepRun:
         self.failed, self.untracked = 0, []
         self.tracker = self.executor = self.progress = None
         self.todo: list[dict] = []
+        self.by_hash = {j.config_hash: j for j in jobs}  # what a replay looks its jobs up in
+        self.tracked: set[str] = set()  # the config hashes the store has as FINISHED (prepare)
 
     def run(self, stale_driver: bool = False) -> SweepSummary:
         scenes = self.prepare(stale_driver)
-        missing = untracked(self.records, self.tracker, {j.config_hash: j for j in self.jobs})
-        if missing:  # finished here, not in the store (a server that was away): replayed first
+        # this sweep's jobs finished here that the store does not have (a server that was away)
+        missing = ([h for h in finished_not_in(self.records, self.tracked) if h in self.by_hash]
+                   if self.tracker.uri else [])
+        if missing:  # replayed first
             with critical():
                 self.tracker.start(self.resolved, len(self.todo))
-                done = replay_until_taken(self.tracker, {j.config_hash: j for j in self.jobs}, self.output_dir,
-                                          self.records, missing, 0.0, lambda line: LOG.info(f"[{self.name}] {line}"))
+                done = replay_until_taken(self.tracker, self.by_hash, self.output_dir, self.records, missing, 0.0,
+                                          lambda line: LOG.info(f"[{self.name}] {line}"))
             LOG.info(f"[{self.name}] tracking: {len(missing)} finished job(s) were not in {self.tracker.uri}: "
                      f"{done.line()}")
             self.untracked += done.failed
@@ -400,7 +404,8 @@ class SweepRun:
         if closed:
             why = "the killed driver" if stale_driver else "an earlier driver that did not end them"
             LOG.info(f"[{self.name}] note: {len(closed)} MLflow run(s) left RUNNING by {why} marked KILLED")
-        done = recorded | self.tracker.finished_hashes()
+        self.tracked = self.tracker.finished_hashes()
+        done = recorded | self.tracked
         self.todo = execution_order([j for j in self.jobs if j.config_hash not in done])
         LOG.info(f"[{self.name}] {len(self.jobs)} jobs: {len(self.jobs) - len(self.todo)} already finished "
                  f"(skipped), {len(self.todo)} to run; output in {self.output_dir}")
@@ -476,8 +481,8 @@ class SweepRun:
         if self.untracked:  # the server went away: try again while it comes back, then say what is left
             wait = float(self.resolved["tracking"].get("replay_wait_s", DEFAULT_REPLAY_WAIT_S))
             with critical():
-                done = replay_until_taken(self.tracker, {j.config_hash: j for j in self.jobs}, self.output_dir,
-                                          self.records, list(dict.fromkeys(self.untracked)), wait,
+                done = replay_until_taken(self.tracker, self.by_hash, self.output_dir, self.records,
+                                          list(dict.fromkeys(self.untracked)), wait,
                                           lambda line: LOG.info(f"[{self.name}] {line}"))
             if done.replayed:
                 LOG.info(f"[{self.name}] tracking: {done.line()}")
@@ -510,9 +515,7 @@ def sync_tracking(cfg: DictConfig) -> dict:
         tracker = make_tracker(resolved["tracking"], output_dir, str(cfg.name))
         closed = tracker.close_stale_runs()  # partial runs of the outage, the parent left open
         have = tracker.finished_hashes()
-        finals = records.frame.query("kind == 'final' and status == 'FINISHED'") if not records.frame.empty else None
-        missing = [] if finals is None else [h for h in dict.fromkeys(finals["config_hash"]) if h not in have]
-        done = replay(tracker, jobs, output_dir, records, missing)
+        done = replay(tracker, jobs, output_dir, records, finished_not_in(records, have))
         LOG.info(f"[{cfg.name}] tracking sync: {done.line()} into {tracker.uri}, "
                  f"{len(have & set(jobs))} already there, {len(closed)} left RUNNING marked KILLED")
         return {"synced": done.replayed, "unknown": done.unknown}

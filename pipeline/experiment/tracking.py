@@ -29,7 +29,7 @@ from pipeline.experiment.console import console
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.spec import Job
-from pipeline.interchange.layout import JobFolder
+from pipeline.interchange.layout import SweepFolder
 
 TAGS = ("method", "dataset", "scene", "seed", "config_hash", "strategy", "kind", "setting", "code_version",
         "data_fingerprint")
@@ -273,7 +273,7 @@ class MlflowTracker:
         """The round images the job saved in its folder (``JobFolder.round_images``) that MLflow did
         not receive live (a lost progress channel, a replay); how many steps were taken from there."""
         received = self.imaged.pop(job.config_hash, set())
-        saved = JobFolder(Path(self.output_dir) / "jobs" / job.config_hash).saved_round_images()
+        saved = SweepFolder(Path(self.output_dir)).job(job.config_hash).saved_round_images()
         missing = {step: files for step, files in saved.items() if step not in received}
         for step, files in sorted(missing.items()):
             self._log_images(run_id, {key: path.read_bytes() for key, path in files.items()}, step)
