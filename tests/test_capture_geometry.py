@@ -3,6 +3,7 @@ check that flags a folded model (bonsai's old one) and passes the re-staged one,
 capture taken with the phone sideways, a truncated photo named in one line."""
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -79,26 +80,44 @@ def staged_bonsai():
     return model_poses(scene)
 
 
+class _Lazy:
+    """Witnesses made as they are first asked for, kept for the next test."""
+
+    def __init__(self, made):
+        self.made, self.kept = made, []
+
+    def __iter__(self):
+        k = 0
+        while True:
+            if k == len(self.kept):
+                try:
+                    self.kept.append(next(self.made))
+                except StopIteration:
+                    return
+            yield self.kept[k]
+            k += 1
+
+
 @pytest.fixture(scope="module")
-def bonsai_subset(staged_bonsai, tmp_path_factory):
-    from pipeline.data.geometry_check import reconstruct_subset
-    subset, size = reconstruct_subset(staged_bonsai, 5, tmp_path_factory.mktemp("geometry"), lambda line: None)
-    return staged_bonsai, subset, size
+def bonsai_witnesses(staged_bonsai, tmp_path_factory):
+    from pipeline.data.geometry_check import witnesses
+    return _Lazy(witnesses(staged_bonsai, 5, tmp_path_factory.mktemp("geometry"), lambda line: None))
 
 
 @pytest.mark.slow
-def test_the_geometry_check_passes_the_restaged_bonsai_and_flags_the_folded_one(bonsai_subset):
-    """One subset of the same 292 photos (every 5th, exhaustive), aligned to both models. Measured
-    (two runs): the re-staged model 0.4 % of the cameras' diameter and 0.5 degrees, the folded one
-    22 % and 6 degrees."""
-    from pipeline.data.geometry_check import FOLD_CENTRE, compare, model_poses
-    staged, subset, size = bonsai_subset
+def test_the_geometry_check_passes_the_restaged_bonsai_and_flags_the_folded_one(staged_bonsai, bonsai_witnesses):
+    """Witnesses of the same 292 photos (every 5th, exhaustive), asked until one agrees with the
+    re-staged model; the folded model against the witness that agreed. Measured (4 runs): the
+    re-staged model 0.4-0.6 % of the cameras' diameter and 0.2-0.5 degrees, the folded one 14-21 %."""
+    from pipeline.data.geometry_check import FOLD_CENTRE, MIN_COVER, model_poses, verdict
     folded = model_poses(SHARED_DATA / "regressions" / "bonsai_folded", SHARED_DATA / "colmap" / "bonsai" / "images")
-    assert folded.names == staged.names
-    good, bad = compare(staged, subset, size, 5), compare(folded, subset, size, 5)
+    assert folded.names == staged_bonsai.names
+    good = verdict(staged_bonsai, bonsai_witnesses, 5)
     assert good.verdict == "consistent" and good.median_centre_error < FOLD_CENTRE / 2, good.line()
+    assert good.registered >= MIN_COVER * good.subset
+    agreed = bonsai_witnesses.kept[len(good.witnesses) - 1]
+    bad = verdict(folded, [agreed], 5)
     assert bad.verdict == "folded or drifted" and bad.median_centre_error > 2 * FOLD_CENTRE, bad.line()
-    assert good.registered >= 0.8 * size and good.fitted_on >= 0.8 * good.registered
 
 
 def test_the_check_measures_what_a_planted_fold_does(staged_bonsai):
@@ -120,6 +139,58 @@ def test_the_check_measures_what_a_planted_fold_does(staged_bonsai):
     c2w[:, :3, :] = turn @ c2w[:, :3, :]
     bent[half] = torch.linalg.inv(c2w)
     assert compare(staged, ModelPoses(every, bent, []), len(every), 5).verdict == "folded or drifted"
+
+
+def test_the_verdict_asks_witnesses_until_one_agrees_and_quotes_the_closest(staged_bonsai):
+    """Witnesses made by hand from the model's own cameras: exact, folded (the far half turned
+    about the up axis by ``angle``), too few registered. No SfM."""
+    from pipeline.data.geometry_check import MIN_COVER, ModelPoses, verdict
+    staged = staged_bonsai
+    every = staged.names[::5]
+    size = len(every)
+
+    def bent(angle):
+        viewmats = staged.viewmats[::5].clone()
+        half = slice(size // 2, None)
+        c, s = math.cos(angle), math.sin(angle)
+        turn = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64)
+        c2w = torch.linalg.inv(viewmats[half])
+        c2w[:, :3, :] = turn @ c2w[:, :3, :]
+        viewmats[half] = torch.linalg.inv(c2w)
+        return (0, ModelPoses(every, viewmats, []), size)
+    exact = (1, ModelPoses(every, staged.viewmats[::5].clone(), []), size)
+    keep = int(MIN_COVER * size) - 1
+    tiny = (2, ModelPoses(every[:keep], staged.viewmats[::5][:keep].clone(), []), size)
+    first_agrees = verdict(staged, iter([exact, bent(1.2)]), 5)
+    assert first_agrees.verdict == "consistent" and len(first_agrees.witnesses) == 1
+    second_agrees = verdict(staged, [bent(1.2), tiny, exact], 5)
+    assert second_agrees.verdict == "consistent" and second_agrees.first == 1
+    assert [w["verdict"] for w in second_agrees.witnesses] == ["folded or drifted", "inconclusive", "consistent"]
+    none_agree = verdict(staged, [bent(1.2), tiny, bent(0.6)], 5)
+    assert none_agree.verdict == "folded or drifted" and none_agree.folded
+    closest = min(w["median_centre_error"] for w in none_agree.witnesses if w["verdict"] != "inconclusive")
+    assert none_agree.median_centre_error == closest and closest > 0.05
+    unheard = verdict(staged, [tiny], 5)
+    assert unheard.verdict == "inconclusive" and not unheard.folded and unheard.median_centre_error is None
+    assert "inconclusive" in unheard.line() and json.loads(json.dumps(unheard.to_dict()))["verdict"] == "inconclusive"
+
+
+def test_relative_rotation_errors_ignore_a_global_turn_and_find_the_turned_camera(staged_bonsai):
+    from pipeline.cameras import Cameras
+    from pipeline.data.alignment import relative_rotation_errors
+    views = staged_bonsai.viewmats[::20].clone()
+    c, s = math.cos(0.7), math.sin(0.7)
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:3, :3] = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+    turned_world = views @ turn  # world->camera after the world is turned: a global rotation
+    ks = torch.eye(3).expand(len(views), 3, 3).clone()
+    assert relative_rotation_errors(Cameras(views.float(), ks, 1, 1), Cameras(turned_world.float(), ks, 1, 1)).max() < 0.05
+    one = views.clone()
+    ten = math.radians(10)
+    one[3, :3, :3] = torch.tensor([[1, 0, 0], [0, math.cos(ten), -math.sin(ten)], [0, math.sin(ten), math.cos(ten)]],
+                                  dtype=torch.float64) @ one[3, :3, :3]
+    errors = relative_rotation_errors(Cameras(views.float(), ks, 1, 1), Cameras(one.float(), ks, 1, 1))
+    assert abs(float(errors[3]) - 10) < 0.05 and float(errors.median()) < 0.05
 
 
 @pytest.fixture(scope="module")

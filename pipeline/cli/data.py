@@ -15,7 +15,7 @@
     gopre-data geometry SCENE [--images DIR] [--every N]
                                        the geometry check: an evenly spaced subset reconstructed with
                                        exhaustive matching, aligned to the model's cameras; exits 3 when
-                                       the model is folded or drifted
+                                       the model is folded or drifted, 4 when no subset registered enough
     gopre-data benchmark PRESET [KEY=VALUE ...] --out FILE
                                        the preset's benchmark definitions: per (scene, seed) the initial
                                        views, pool, goal probes per round, test views with image hashes
@@ -185,7 +185,7 @@ def main(argv=None) -> int:
                                    say=lambda line: print(line, file=sys.stderr, flush=True))
             print(json.dumps(check.to_dict()))
             print(("the model is FOLDED OR DRIFTED: " if check.folded else "") + check.line(), file=sys.stderr)
-            return 3 if check.folded else 0
+            return 3 if check.folded else 4 if check.verdict == "inconclusive" else 0
         if args.command == "benchmark":
             print(json.dumps(write_benchmark(args.preset, args.overrides, args.out)))
             return 0

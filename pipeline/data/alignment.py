@@ -88,3 +88,20 @@ def matched(true_names: list[str], true: Cameras, est_names: list[str], estimate
     return true[list(ti)], estimated[list(ei)], [true_names[i] for i in ti]
 
 
+
+
+def relative_rotation_errors(true: Cameras, estimated: Cameras) -> Tensor:
+    """Per camera [C], degrees: the median over the other cameras j of the angle between the true
+    relative rotation R_i R_j^T and the estimated one. No alignment enters it: a global rotation of
+    either set leaves it at zero, while a camera turned against the others shows in its own figure
+    and, once in the median of each of the others, not at all."""
+    if len(true) != len(estimated) or len(true) < 2:
+        raise ValueError(f"relative_rotation_errors: need matching sets of >= 2 cameras, got {len(true)} "
+                         f"and {len(estimated)}")
+    r_true, r_est = true.viewmats[:, :3, :3].double(), estimated.viewmats[:, :3, :3].double()
+    rel_true = r_true[:, None] @ r_true.transpose(1, 2)[None]    # [C, C, 3, 3]: R_i R_j^T
+    rel_est = r_est[:, None] @ r_est.transpose(1, 2)[None]
+    cos = ((rel_true.transpose(-1, -2) @ rel_est).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    angle = torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))        # [C, C], zero on the diagonal
+    off_diagonal = ~torch.eye(len(true), dtype=torch.bool)
+    return torch.stack([angle[i][off_diagonal[i]].median() for i in range(len(true))])

@@ -90,9 +90,19 @@ def quiet_colmap(log_dir: Path) -> None:
     pycolmap.logging.log_dir = str(log_dir)
 
 
-def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, seconds: dict) -> tuple:
-    """SIFT, matching and incremental mapping; returns (largest model, the others' sizes)."""
+def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, seconds: dict,
+                min_num_matches: int | None = None, seed: int | None = None) -> tuple:
+    """SIFT, matching and incremental mapping; returns (largest model, the others' sizes).
+    ``min_num_matches``: the fewest verified matches that link two images in the mapping (COLMAP's
+    default 15 when None); ``seed``: COLMAP's random seed (its RANSAC; the result still varies with
+    thread timing)."""
     import pycolmap
+    options = pycolmap.IncrementalPipelineOptions()
+    if min_num_matches is not None:
+        options.min_num_matches = min_num_matches
+    if seed is not None:
+        pycolmap.set_random_seed(seed)
+        options.random_seed = seed
     quiet_colmap(work / "colmap_logs")
     db, images_dir = work / "database.db", work / "images"
     start = time.perf_counter()
@@ -125,7 +135,8 @@ def reconstruct(work: Path, names: list[str], matcher: str, say: Progress, secon
         registered[0] += 1
         if registered[0] % max(1, len(names) // 10) == 0:
             say(f"mapping: {min(registered[0], len(names))}/{len(names)} images tried (a retried image counts again)")
-    models = pycolmap.incremental_mapping(db, images_dir, work / "sparse", next_image_callback=next_image)
+    models = pycolmap.incremental_mapping(db, images_dir, work / "sparse", options=options,
+                                          next_image_callback=next_image)
     seconds["mapping"] = round(time.perf_counter() - start, 1)
     if not models:
         raise CaptureError(f"{work / 'images'}: structure-from-motion registered no model (too few matches: "
