@@ -3,17 +3,23 @@ needs (no Docker engine or Kubernetes runs here; what the containers run is exer
 tests/test_ray_cluster.py and tests/test_tracking_server.py): docker compose on one machine and on
 several, the image recipe and its build context, and KubeRay's RayJob with everything it refers to.
 
-The official schemas (the Compose specification's JSON schema, KubeRay's CRDs) are not copied into
-this repository; the field lists below are the subset of them these files use, written from their
-documentation (docs.docker.com/reference/compose-file, the KubeRay API reference), so a misspelt
-or misplaced key fails here as it would fail `docker compose config` or the API server."""
+The official schemas are copied into ``tests/schemas`` (their source, version and checksum in its
+README): the Compose specification's JSON schema, as `docker compose config` validates, and KubeRay
+v1.7.0's RayJob CRD, whose ``openAPIV3Schema`` the API server validates a RayJob against, with
+unknown fields rejected as `kubectl apply`'s strict field validation (its default) rejects them. So
+a misspelt or misplaced key fails here as it would fail there."""
 
+import copy
+import functools
+import gzip
+import json
 import re
 import shlex
 import shutil
 import subprocess
 from pathlib import Path
 
+import jsonschema
 import pytest
 import yaml
 
@@ -24,28 +30,41 @@ DOCKER = PACKAGE_ROOT / "docker"
 KUBERAY = PACKAGE_ROOT / "deploy" / "kuberay"
 COMPOSE_FILES = [DOCKER / "compose.yaml", DOCKER / "compose.worker.yaml"]
 
-# The Compose specification's top-level and service keys these files may use (a subset of the spec).
-COMPOSE_TOP = {"name", "services", "volumes", "networks", "configs", "secrets"}
-COMPOSE_SERVICE = {"build", "image", "command", "entrypoint", "environment", "env_file", "volumes", "ports",
-                   "depends_on", "healthcheck", "restart", "network_mode", "networks", "shm_size", "deploy",
-                   "user", "working_dir", "labels", "profiles", "expose", "extra_hosts", "ulimits"}
-COMPOSE_BUILD = {"context", "dockerfile", "args", "target", "cache_from"}
-COMPOSE_HEALTHCHECK = {"test", "interval", "timeout", "retries", "start_period", "start_interval", "disable"}
+SCHEMAS = Path(__file__).parent / "schemas"
 DEPENDS_CONDITIONS = {"service_started", "service_healthy", "service_completed_successfully"}
 RESTART_POLICIES = {"always", "unless-stopped", "on-failure"}
 SHARED_TARGETS = {"/data", "/app/outputs"}  # what the driver's node probe reads on every node
 
-# KubeRay's ray.io/v1 fields these files use (the KubeRay API reference; authOptions from v1.5.1).
-RAYJOB_SPEC = {"entrypoint", "shutdownAfterJobFinishes", "ttlSecondsAfterFinished", "backoffLimit",
-               "rayClusterSpec", "runtimeEnvYAML", "submitterPodTemplate", "activeDeadlineSeconds",
-               "suspend", "submissionMode", "entrypointNumCpus", "clusterSelector", "deletionStrategy"}
-RAYCLUSTER_SPEC = {"rayVersion", "headGroupSpec", "workerGroupSpecs", "enableInTreeAutoscaling",
-                   "autoscalerOptions", "authOptions", "headServiceAnnotations", "suspend", "gcsFaultToleranceOptions"}
-WORKER_GROUP = {"groupName", "replicas", "minReplicas", "maxReplicas", "rayStartParams", "template",
-                "numOfHosts", "scaleStrategy", "suspend", "idleTimeoutSeconds"}
-HEAD_GROUP = {"rayStartParams", "template", "serviceType", "headService", "enableIngress"}
-AUTOSCALER_OPTIONS = {"upscalingMode", "idleTimeoutSeconds", "resources", "image", "imagePullPolicy", "env",
-                      "envFrom", "securityContext", "volumeMounts", "version"}
+
+@functools.cache
+def compose_validator() -> jsonschema.Draft7Validator:
+    return jsonschema.Draft7Validator(json.loads((SCHEMAS / "compose-spec.json").read_text()))
+
+
+def strict_fields(node):
+    """A CRD schema with every object that lists its properties closed to others (kubectl's strict
+    field validation), except where Kubernetes keeps unknown fields."""
+    if isinstance(node, dict):
+        if ("properties" in node and "additionalProperties" not in node
+                and not node.get("x-kubernetes-preserve-unknown-fields")):
+            node["additionalProperties"] = False
+        for value in node.values():
+            strict_fields(value)
+    elif isinstance(node, list):
+        for value in node:
+            strict_fields(value)
+    return node
+
+
+@functools.cache
+def rayjob_validator() -> jsonschema.Draft4Validator:
+    crd = yaml.safe_load(gzip.decompress((SCHEMAS / "ray.io_rayjobs.v1.7.0.yaml.gz").read_bytes()))
+    (v1,) = [v for v in crd["spec"]["versions"] if v["name"] == "v1"]
+    return jsonschema.Draft4Validator(strict_fields(copy.deepcopy(v1["schema"]["openAPIV3Schema"])))
+
+
+def schema_errors(validator, document) -> list[str]:
+    return [f"{'/'.join(map(str, e.absolute_path)) or '(top)'}: {e.message[:160]}" for e in validator.iter_errors(document)]
 
 
 def load(path: Path):
@@ -82,14 +101,11 @@ def ray_nodes(compose: dict) -> dict[str, dict]:
 
 
 @pytest.mark.parametrize("path", COMPOSE_FILES, ids=lambda p: p.name)
-def test_a_compose_file_uses_only_keys_and_values_compose_accepts(path):
+def test_a_compose_file_is_valid_under_the_compose_specification(path):
     compose = load(path)
-    assert set(k for k in compose if not k.startswith("x-")) <= COMPOSE_TOP
+    assert schema_errors(compose_validator(), compose) == []
     declared_volumes = set(compose.get("volumes") or {})
     for name, service in compose["services"].items():
-        assert set(service) <= COMPOSE_SERVICE, (name, set(service) - COMPOSE_SERVICE)
-        assert set(service.get("build", {})) <= COMPOSE_BUILD, name
-        assert set(service.get("healthcheck", {})) <= COMPOSE_HEALTHCHECK, name
         assert not ("network_mode" in service and "ports" in service), f"{name}: host networking publishes no ports"
         depends = service.get("depends_on", {})
         for other, how in (depends.items() if isinstance(depends, dict) else ((d, {}) for d in depends)):
@@ -243,15 +259,13 @@ def test_the_kuberay_folder_holds_everything_its_rayjob_refers_to():
 def test_the_rayjob_is_what_kuberay_accepts_autoscales_as_it_says_and_runs_one_job_per_pod():
     (job,) = [d for d in kuberay_documents() if d["kind"] == "RayJob"]
     assert job["apiVersion"] == "ray.io/v1" and job["metadata"]["name"]
+    assert schema_errors(rayjob_validator(), job) == []
     spec, cluster = job["spec"], job["spec"]["rayClusterSpec"]
-    assert set(spec) <= RAYJOB_SPEC and set(cluster) <= RAYCLUSTER_SPEC
-    assert set(cluster["headGroupSpec"]) <= HEAD_GROUP
-    assert set(cluster.get("autoscalerOptions", {})) <= AUTOSCALER_OPTIONS
     assert cluster["rayVersion"] == read_lock()["ray"]  # the image's Ray
     assert cluster["authOptions"]["mode"] == "token"     # the head Service's Jobs API needs the token
     groups = cluster["workerGroupSpecs"]
     for group in groups:
-        assert set(group) <= WORKER_GROUP and group["groupName"]
+        assert group["groupName"]
         assert group["minReplicas"] <= group["replicas"] <= group["maxReplicas"]
     if any(g["minReplicas"] != g["maxReplicas"] for g in groups):  # a range means an autoscaler
         assert cluster["enableInTreeAutoscaling"] is True
@@ -303,3 +317,26 @@ def _containers(doc: dict):
 
 def _volumes(doc: dict):
     return [v for v in _walk(doc, "volumes") if isinstance(v, dict) and "name" in v]
+
+
+@pytest.mark.parametrize("where, key", [(("services", "ray-head"), "restart_policy"),
+                                        (("services", "ray-head", "healthcheck"), "intervall")])
+def test_the_compose_schema_refuses_a_misspelt_key(where, key):
+    compose = load(DOCKER / "compose.yaml")
+    node = compose
+    for step in where:
+        node = node[step]
+    node[key] = "always"
+    assert any(key in e for e in schema_errors(compose_validator(), compose))
+
+
+@pytest.mark.parametrize("path, key", [(("spec", "rayClusterSpec"), "enableInTreeAutoScaling"),
+                                       (("spec", "rayClusterSpec", "authOptions"), "token"),
+                                       (("spec",), "shutdownAfterJobFinish")])
+def test_the_rayjob_schema_refuses_a_misspelt_or_misplaced_field(path, key):
+    (job,) = [copy.deepcopy(d) for d in kuberay_documents() if d["kind"] == "RayJob"]
+    node = job
+    for step in path:
+        node = node[step]
+    node[key] = True
+    assert any(key in e for e in schema_errors(rayjob_validator(), job))
