@@ -53,6 +53,28 @@ def test_a_worker_under_other_code_or_packages_is_refused_and_not_retried(tmp_pa
     assert len(starts) == 2 and all(s["pid"] == os.getpid() for s in starts)
 
 
+def test_other_packages_name_what_differs_and_a_shared_environment_is_not_told_to_install(tmp_path):
+    """A shared environment being installed into while a launch starts: the node runs from the
+    driver's own environment folder, so 'install requirements.lock on every node' is the wrong advice."""
+    import sys
+    from pipeline.experiment.executors.ray_cluster import driver_changed
+    job = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", f"output_dir={tmp_path}"]))[0]
+    here = DriverIdentity.here()
+    assert "numpy" in here.pins and here.prefix == sys.prefix
+    sent_pins = {**here.pins, "numpy": "0.0.1"}
+    sent_pins.pop("scipy")
+    shared = DriverIdentity(here.code_version, "feedfacecafe", sent_pins, sys.prefix)
+    told = run_here(job, None, None, shared).traceback
+    assert f"numpy {here.pins['numpy']} (driver 0.0.1)" in told and f"scipy {here.pins['scipy']} (driver missing)" in told
+    assert "driver's environment folder" in told and "let the install finish" in told
+    assert "install requirements.lock on every node" not in told
+    elsewhere = DriverIdentity(here.code_version, "feedfacecafe", sent_pins, str(tmp_path / "other-venv"))
+    assert "install requirements.lock on every node" in run_here(job, None, None, elsewhere).traceback
+    assert driver_changed(here) == []  # the driver's packages as they were: nothing changed under it
+    (line,) = driver_changed(shared)
+    assert "changed since this launch began" in line and "numpy" in line
+
+
 @pytest.mark.slow
 def test_a_local_job_records_where_and_under_what_it_ran(tmp_path):
     from pipeline.experiment.provenance import code_version, environment
@@ -192,8 +214,9 @@ def test_a_cluster_that_refuses_the_driver_is_one_line_naming_the_token(monkeypa
     listener.listen()
     port = listener.getsockname()[1]
     monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
-    text = connection_problem(f"127.0.0.1:{port}", ConnectionError("Failed to connect"))
-    assert "RAY_AUTH_MODE=token" in text and "auth_token" in text and "\n" not in text
+    for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):  # a GCS address and Ray Client's
+        text = connection_problem(address, ConnectionError("Failed to connect"))
+        assert "RAY_AUTH_MODE=token" in text and "auth_token" in text and "\n" not in text, address
     listener.close()
     text = connection_problem(f"127.0.0.1:{port}", ConnectionError("Failed to connect"))
     assert "no Ray cluster answers" in text
@@ -290,6 +313,29 @@ def test_a_preempted_array_task_is_requeued_and_resumes_from_its_checkpoint(tmp_
     assert rounds == list(range(len(rounds))) and sorted(set(heard)) == rounds
     local = run_here(expand_jobs(composed([*overrides, f"output_dir={tmp_path / 'here'}"]))[0])
     assert outcome.final.psnr == local.final.psnr and outcome.episode.selected == local.episode.selected
+
+
+def test_a_task_killed_once_says_one_start_and_where_it_ran(tmp_path):
+    """A task that dies without returning (killed, out of memory): its attempts are the starts its
+    job folder recorded, not 1 + max_requeues, and its record names the node it last ran on."""
+    from pipeline.experiment.executors.slurm import SlurmExecutor
+    from pipeline.experiment.executors.worker import record_start
+    job = expand_jobs(composed(["experiment=debug", *TINY, "method=[random]", f"output_dir={tmp_path}"]))[0]
+
+    class Killed:
+        paths = None
+
+        def result(self):
+            raise RuntimeError("submitit: job 17 (task: 0) exited with signal 9 (SIGKILL)")
+    executor = SlurmExecutor(tmp_path, cluster="local", max_requeues=3)
+    never = executor._outcome(Killed(), job)
+    assert never.attempts == 1 and "before the job started" in never.traceback and not never.worker
+    record_start(Path(job.execution.job_dir))
+    once = executor._outcome(Killed(), job)
+    assert once.attempts == 1 and "after 1 start(s), the last on" in once.traceback and "SIGKILL" in once.traceback
+    assert once.worker["starts"] == 1 and once.worker["host"] == os.uname().nodename
+    from pipeline.experiment.records import worker_columns
+    assert worker_columns(once)["starts"] == 1 and worker_columns(once)["elapsed_seconds"] >= 0
 
 
 def test_the_sbatch_settings_are_ones_submitit_accepts(tmp_path, monkeypatch):

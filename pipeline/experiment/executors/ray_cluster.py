@@ -26,7 +26,7 @@ from pipeline.data.scene import Scene
 from pipeline.experiment.build import ConfigError
 from pipeline.experiment.console import console
 from pipeline.experiment.executors.base import OnDone, OnRound, scene_key
-from pipeline.experiment.executors.worker import DriverIdentity, identity_problem, run_here
+from pipeline.experiment.executors.worker import DriverIdentity, identity_problem, pin_differences, run_here
 from pipeline.experiment.interrupt import (SweepInterrupted, critical, current_handlers,
                                            install_stop_handlers, restore_handlers)
 from pipeline.experiment.outcome import JobOutcome, RoundMessage, message_from_dict
@@ -124,6 +124,16 @@ def node_probe(paths: list[str], token_file: str, token: str, expected: dict) ->
             "identity": identity_problem(DriverIdentity(**expected))}
 
 
+def driver_changed(expected: DriverIdentity) -> list[str]:
+    """A line when the driver's own packages changed since the launch began (an install into its
+    environment under way): no node can match what it was sent."""
+    now = DriverIdentity.here()
+    if now.packages == expected.packages:
+        return []
+    return [f"the driver's own packages changed since this launch began ({pin_differences(expected.pins, now.pins)}): "
+            "an install into its environment is under way or just ended: let it finish and launch again"]
+
+
 def infeasible(jobs: list[Job], nodes: list[dict], gpus_per_job: float) -> list[str]:
     """One line per resource request no alive node can ever hold (Ray would wait for it forever,
     silently): a job's ``job.threads`` CPUs, or ``executor.gpus_per_job`` GPUs."""
@@ -210,6 +220,7 @@ class RayExecutor:
         marker.parent.mkdir(parents=True, exist_ok=True)
         token = uuid.uuid4().hex
         marker.write_text(token)
+        reports: list[dict] = []
         try:
             probe = ray.remote(num_cpus=0, max_retries=0)(node_probe)
             nodes = [n for n in ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0]
@@ -217,7 +228,7 @@ class RayExecutor:
             refs = {probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False))
                     .remote(files, str(marker), token, expected.to_dict()): n for n in nodes}
             ready, waiting = ray.wait(list(refs), num_returns=len(refs), timeout=PROBE_TIMEOUT_S)
-            reports, problems = [], []
+            problems = []
             for ref in ready:
                 try:
                     reports.append(ray.get(ref))
@@ -229,6 +240,8 @@ class RayExecutor:
             problems += node_problems(reports, self.output_dir)
         finally:
             marker.unlink(missing_ok=True)
+        if any(r.get("identity") for r in reports):
+            problems += driver_changed(expected)
         if problems:
             raise ConfigError(f"{len(problems)} problem(s) with the Ray cluster's nodes, no job was started:\n  "
                               + "\n  ".join(problems))
@@ -302,9 +315,9 @@ class RayExecutor:
 def connection_problem(address: str, err: BaseException) -> str:
     """One line for a cluster Ray could not join: nothing listens there, or (something answers,
     yet Ray was refused) token authentication that this driver does not take part in."""
-    host, _, port = address.rpartition(":")
+    host, _, port = address.split("://", 1)[-1].rpartition(":")  # ray://host:10001 (Ray Client) or host:6379
     listening = False
-    if port.isdigit() and host and "://" not in host:
+    if port.isdigit() and host:
         import socket
         try:
             socket.create_connection((host, int(port)), timeout=3).close()

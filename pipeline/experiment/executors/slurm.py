@@ -22,7 +22,7 @@ from pathlib import Path
 from pipeline.data.scene import Scene
 from pipeline.experiment.build import ConfigError
 from pipeline.experiment.executors.base import OnDone, OnRound
-from pipeline.experiment.executors.worker import DriverIdentity, run_here
+from pipeline.experiment.executors.worker import DriverIdentity, read_starts, run_here
 from pipeline.experiment.interrupt import SweepInterrupted, critical
 from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.outcome import JobOutcome, RoundMessage, StepProgress, message_from_dict
@@ -106,6 +106,21 @@ class ProgressTail:
         return [ln for ln in lines if ln]
 
 
+def died(job: Job, error: str, paths=None) -> JobOutcome:
+    """The outcome of a task that ended without returning one (killed, out of memory, out of
+    requeues): its attempts are the starts its job folder recorded (``starts.jsonl``), and where it
+    last ran is kept as the worker, so the record says how often it began and on which node."""
+    starts = read_starts(Path(job.execution.job_dir))
+    where = f"\nsubmitit logs: {paths.stdout} {paths.stderr}" if paths is not None else ""
+    said = (f"\nthe task ended without a result after {len(starts)} start(s), the last on {starts[-1]['host']} "
+            f"({starts[-1]['node']})" if starts else "\nthe task ended before the job started (no start recorded)")
+    outcome = JobOutcome.failed(max(1, len(starts)), [error + said + where])
+    if starts:
+        outcome.worker = {"host": starts[-1]["host"], "node": starts[-1]["node"], "pid": starts[-1].get("pid"),
+                          "starts": len(starts), "first_started": starts[0]["started"], "ended": time.time()}
+    return outcome
+
+
 class SlurmExecutor:
     def __init__(self, output_dir: Path, cluster: str | None = None, partition: str | None = None,
                  account: str | None = None, timeout_min: int = 240, array_parallelism: int = 64,
@@ -187,7 +202,7 @@ class SlurmExecutor:
                     if not submitted.done():
                         continue
                     del pending[config_hash]
-                    outcome = self._outcome(submitted)
+                    outcome = self._outcome(submitted, job)
                     if on_round is not None:
                         hear(job)  # lines written after the last look
                         for message in unheard_rounds(outcome, heard[config_hash]):
@@ -206,10 +221,8 @@ class SlurmExecutor:
                     self.running.append(job)
             raise
 
-    def _outcome(self, submitted) -> JobOutcome:
+    def _outcome(self, submitted, job: Job) -> JobOutcome:
         try:
             return JobOutcome.from_dict(submitted.result())
         except Exception:  # the task died (killed, out of memory, out of requeues): its logs say why
-            paths = getattr(submitted, "paths", None)
-            where = f"\nsubmitit logs: {paths.stdout} {paths.stderr}" if paths is not None else ""
-            return JobOutcome.failed(1 + self.max_requeues, [traceback.format_exc() + where])
+            return died(job, traceback.format_exc(), getattr(submitted, "paths", None))

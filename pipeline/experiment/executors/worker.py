@@ -15,31 +15,52 @@ import os
 import socket
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from pipeline.data.scene import Scene
 from pipeline.experiment.job import Report, run_with_retries
 from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.outcome import JobOutcome
-from pipeline.experiment.provenance import code_version, environment
+from pipeline.experiment.provenance import code_version, environment, installed_pins
 from pipeline.experiment.spec import Job
 from pipeline.splat.compiled import compile_seconds
 
 
 @dataclass(frozen=True)
 class DriverIdentity:
-    """The code and packages a worker must run: the driver's."""
+    """The code and packages a worker must run: the driver's (``pins``: name -> version, to say which
+    differ; ``prefix``: the driver's environment folder, ``sys.prefix``)."""
 
     code_version: str
     packages: str
+    pins: dict[str, str] = field(default_factory=dict, compare=False)
+    prefix: str = ""
 
     @classmethod
     def here(cls) -> "DriverIdentity":
-        return cls(code_version(), environment().packages)
+        return cls(code_version(), environment().packages, installed_pins(), sys.prefix)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def pin_differences(theirs: dict[str, str], ours: dict[str, str], most: int = 5) -> str:
+    """'numpy 2.0.0 (driver 1.26.4), scipy missing (driver 1.13.1), ...': what differs, at most ``most``."""
+    names = sorted(set(theirs) | set(ours))
+    lines = [f"{n} {ours.get(n, 'missing')} (driver {theirs.get(n, 'missing')})" for n in names
+             if theirs.get(n) != ours.get(n)]
+    return ", ".join(lines[:most]) + (f", and {len(lines) - most} more" if len(lines) > most else "")
+
+
+def package_advice(expected: DriverIdentity) -> str:
+    """What to do about other packages: a node that runs from the driver's own environment folder
+    sees an install into it under way (a shared environment), any other needs the lock installed."""
+    if expected.prefix and os.path.realpath(expected.prefix) == os.path.realpath(sys.prefix):
+        return (f"this node runs from the driver's environment folder ({sys.prefix}): if it is shared, its "
+                "packages changed after the launch began (an install into it under way?): let the install "
+                "finish and launch again; if it is not shared, install requirements.lock here: make env")
+    return "install requirements.lock on every node: make env"
 
 
 def identity_problem(expected: DriverIdentity | None) -> str | None:
@@ -51,8 +72,9 @@ def identity_problem(expected: DriverIdentity | None) -> str | None:
     if here.code_version != expected.code_version:
         problems.append(f"code {here.code_version}, the driver runs {expected.code_version}")
     if here.packages != expected.packages:
-        problems.append(f"packages {here.packages}, the driver's are {expected.packages} "
-                        "(install requirements.lock on every node: make env)")
+        differ = pin_differences(expected.pins, here.pins) if expected.pins else ""
+        problems.append(f"packages {here.packages}, the driver's are {expected.packages}"
+                        + (f": {differ}" if differ else "") + f" ({package_advice(expected)})")
     if not problems:
         return None
     return f"worker {socket.gethostname()} ({node_name()}) refused: " + "; ".join(problems)
