@@ -9,11 +9,11 @@ from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.sweep import run_sweep
 
 
-def _cfg(out, store):
+def _cfg(out, store, more=()):
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         return compose("config", ["splat=tiny", "dataset=[generated]", "protocol.initial_views=2", "protocol.budget=3",
                                   "protocol.probes=2", "executor=local", "tracking=mlflow", f"tracking.uri={store}",
-                                  "method=[random]", "seeds=[0]", "job.round_images=0", f"output_dir={out}"])
+                                  "method=[random]", "seeds=[0]", "job.round_images=0", f"output_dir={out}", *more])
 
 
 @pytest.mark.slow
@@ -26,3 +26,36 @@ def test_a_new_folder_on_a_shared_store_runs_its_own_jobs(tmp_path):
     assert len(RecordsFile(tmp_path / "b").frame.query("kind == 'final'")) == 1
     assert (tmp_path / "b" / "jobs").is_dir()
     assert run_sweep(_cfg(tmp_path / "a", store)).skipped == 1  # each folder still resumes its own
+
+
+@pytest.mark.slow
+def test_another_folders_finished_jobs_are_taken_only_when_named(tmp_path):
+    """reuse_from copies the named folder's finished jobs in (job folder, then records rows with
+    reused_from), runs only the rest, and the store gets them as runs of this folder."""
+    from mlflow import MlflowClient
+
+    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.layout import SweepFolder
+    store = f"sqlite:///{tmp_path / 'server.db'}"
+    assert run_sweep(_cfg(tmp_path / "a", store)).finished == 1
+    (done,) = RecordsFile(tmp_path / "a").finished_hashes()
+    cfg = _cfg(tmp_path / "c", store, ["method=[random,coverage]", f"reuse_from=[{tmp_path / 'a'}]"])
+    summary = run_sweep(cfg)
+    assert summary.finished == 1 and summary.skipped == 1  # coverage ran; random was taken
+    frame = RecordsFile(tmp_path / "c").frame
+    taken, ran = frame[frame["config_hash"] == done], frame[frame["config_hash"] != done]
+    theirs = RecordsFile(tmp_path / "a").frame
+    assert set(taken["reused_from"]) == {str((tmp_path / "a").resolve())} and ran["reused_from"].isna().all()
+    final = lambda f: f.query("kind == 'final'").iloc[0]  # noqa: E731
+    assert final(taken)["psnr"] == final(theirs)["psnr"] and len(taken) == len(theirs)
+    job = SweepFolder(tmp_path / "c").job(done)
+    assert job.result_file.read_bytes() == SweepFolder(tmp_path / "a").job(done).result_file.read_bytes()
+    assert not job.checkpoint_dir.exists()
+    client = MlflowClient(store)
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()],
+                              f"tags.config_hash = '{done}' and attributes.status = 'FINISHED'")
+    assert len({r.data.tags.get("output_dir") for r in runs}) == 2  # a's run and c's replayed one
+    with pytest.raises(ConfigError, match="reuse_from: .*nowhere has no records.parquet"):
+        run_sweep(_cfg(tmp_path / "d", store, [f"reuse_from=[{tmp_path / 'nowhere'}]"]))
+    with pytest.raises(ConfigError, match="reuse_from: expected a list of output folders"):
+        run_sweep(_cfg(tmp_path / "d", store, ["reuse_from=3"]))

@@ -30,6 +30,7 @@ from pipeline.experiment.outcome import TRACEBACK_ARTIFACT, JobOutcome, RoundMes
 from pipeline.experiment.provenance import code_version, stale_versions
 from pipeline.experiment.records import RecordsFile, job_rows
 from pipeline.experiment.replay import finished_not_in, replay, replay_until_taken
+from pipeline.experiment.reuse import reuse_finished
 from pipeline.experiment.tracking import make_tracker
 from pipeline.experiment.warmup import compile_kernels
 from pipeline.interchange.layout import cannot_write
@@ -143,6 +144,19 @@ def every_quarter(split: str, done: int, total: int) -> None:
     """A progress line at each quarter of a split of the generated scene."""
     if at_fraction(done, total, 4):
         LOG.info(f"  {split}: {done}/{total} views")
+
+
+def reuse_sources(cfg) -> list[Path]:
+    """``reuse_from``: the output folders whose finished jobs this sweep takes (``reuse``); [] when
+    unset."""
+    value = cfg.get("reuse_from")
+    if OmegaConf.is_config(value):
+        value = OmegaConf.to_container(value, resolve=True)
+    value = [] if value is None else [value] if isinstance(value, str) else value
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise ConfigError(f"reuse_from: expected a list of output folders, e.g. 'reuse_from=[outputs/other]', "
+                          f"got {value!r}")
+    return [Path(v) for v in value]
 
 
 def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
@@ -393,6 +407,9 @@ class SweepRun:
         skip list and the execution order; the scenes the jobs read."""
         self.folder.config_file.write_text(json.dumps(self.resolved, indent=1, default=str))
         self.supersede_changed_data()
+        for taken in reuse_finished(self.jobs, reuse_sources(self.cfg), self.output_dir, self.records):
+            LOG.info(f"[{self.name}] reused {len(taken.hashes)} finished job(s) from {taken.source}: their job folders "
+                     "and records rows, which keep their code version (the records' reused_from names the folder)")
         recorded = self.records.finished_hashes()
         scenes = validate_sweep([j for j in self.jobs if j.config_hash not in recorded],
                                 bool(self.cfg.get("validate_images", True)))
