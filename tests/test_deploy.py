@@ -179,6 +179,7 @@ def test_the_image_records_its_commit_and_its_python_is_the_locks():
     assert re.search(r'requires-python = ">=3\.11"', pyproject)
     assert "ARG GIT_COMMIT" in dockerfile and "GOPRE_CODE_VERSION=${GIT_COMMIT}" in dockerfile
     assert 'torch==${TORCH_VERSION}' in dockerfile and f"ARG TORCH_VERSION={read_lock()['torch']}" in dockerfile
+    assert "\"${TORCH_INDEX}\" = pypi ]; then pip install --no-cache-dir \"torch==${TORCH_VERSION}\";" in dockerfile
     for path in COMPOSE_FILES:
         for name, service in gopre_services(load(path)).items():
             assert service["build"]["args"]["GIT_COMMIT"].startswith("${GIT_COMMIT"), f"{path.name} {name}"
