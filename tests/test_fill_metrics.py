@@ -125,7 +125,7 @@ def as_before_uncertainty(src, dst):
     for job in json.loads(sweep.jobs_file.read_text()):
         path = sweep.job(job["config_hash"]).result_file
         result = json.loads(path.read_text())
-        for key in ("uncertainty", "path_length", "depth"):
+        for key in ("uncertainty", "path_length", "depth", "uncertainty_curves"):
             result["final"].pop(key)
         path.write_text(json.dumps(result))
     records = RecordsFile(dst)
@@ -153,6 +153,11 @@ def test_filling_a_sweep_recorded_without_uncertainty_gives_back_what_the_episod
         truth = json.loads(SweepFolder(current_sweep).job(config_hash).result_file.read_text())["final"]
         assert result["uncertainty"] == pytest.approx(truth["uncertainty"], rel=1e-6)
         assert result["depth"] == pytest.approx(truth["depth"], rel=1e-6)
+        assert result["uncertainty_curves"]["fractions"] == truth["uncertainty_curves"]["fractions"]
+        for error in ("mae", "rmse", "dssim"):
+            for curve in ("by_uncertainty", "oracle", "random"):
+                assert result["uncertainty_curves"][error][curve] == pytest.approx(
+                    truth["uncertainty_curves"][error][curve], rel=1e-6, abs=1e-12), (error, curve)
     assert load_records(old).query("kind == 'round'").shape == load_records(current_sweep).query("kind == 'round'").shape
     # the report's uncertainty table now has them
     assert "| random |" in make_report(old, tmp_path / "report")["tables"]
@@ -169,3 +174,29 @@ def test_an_uncertainty_fill_refuses_a_model_that_is_not_the_scored_one(current_
     assert sweep.job(a).result_file.read_bytes() == untouched
     frame = finals(old)
     assert pd.isna(frame.loc[a, "unc_nll"]) and not pd.isna(frame.loc[b, "unc_nll"])
+
+
+def test_a_sweep_measured_without_the_curves_gets_them_and_keeps_its_values_or_is_refused(current_sweep, tmp_path,
+                                                                                       capsys):
+    """The state of a sweep filled before the curves were kept: uncertainty measured, no curves. The
+    fill adds the curves; a recorded value the code now measures otherwise refuses the job."""
+    old = tmp_path / "old"
+    shutil.copytree(current_sweep, old)
+    sweep = SweepFolder(old)
+    hashes = [job["config_hash"] for job in json.loads(sweep.jobs_file.read_text())]
+    for k, config_hash in enumerate(hashes):
+        path = sweep.job(config_hash).result_file
+        result = json.loads(path.read_text())
+        result["final"].pop("uncertainty_curves")
+        if k == 1:  # as other code would have measured it
+            result["final"]["uncertainty"]["nll"] += 0.5
+        path.write_text(json.dumps(result))
+    assert eval_main(["--sweep", str(old)]) == 1  # one refused
+    out = capsys.readouterr().out
+    assert "1 filled, 0 already current, 1 refused" in out and "differs from the recorded one (nll" in out
+    kept = json.loads(sweep.job(hashes[0]).result_file.read_text())["final"]
+    truth = json.loads(SweepFolder(current_sweep).job(hashes[0]).result_file.read_text())["final"]
+    assert kept["uncertainty_curves"]["mae"]["by_uncertainty"] == pytest.approx(
+        truth["uncertainty_curves"]["mae"]["by_uncertainty"], rel=1e-6, abs=1e-12)
+    assert kept["uncertainty"] == pytest.approx(truth["uncertainty"], rel=1e-6)
+    assert "uncertainty_curves" not in json.loads(sweep.job(hashes[1]).result_file.read_text())["final"]

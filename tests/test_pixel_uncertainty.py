@@ -160,6 +160,32 @@ def test_the_final_model_record_ranks_and_calibrates_as_its_parts_say():
         pixel_uncertainty(truth, render, exact[..., 0])
 
 
+def test_the_kept_curves_are_the_ones_the_ause_integrates():
+    """At the AUSE's own fractions the kept curves give back the record's max-norm. AUSE per error;
+    an exact variance puts the RMSE curve on the oracle, a constant one every curve on random."""
+    import numpy as np
+    import torch
+
+    from pipeline.eval.model_uncertainty import CURVE_FRACTIONS, pixel_uncertainty, sparsification_curves
+    gen = torch.Generator().manual_seed(1)
+    truth = torch.rand(2, 12, 16, 3, generator=gen, dtype=torch.float64)
+    render = (truth + 0.1 * torch.randn(2, 12, 16, 3, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    noisy = (render - truth) ** 2 + 0.01 * torch.rand(2, 12, 16, 3, generator=gen, dtype=torch.float64)
+    record = pixel_uncertainty(truth, render, noisy)
+    curves = sparsification_curves(truth, render, noisy, tuple(MAX_FRACTIONS))
+    for error in ("mae", "rmse", "dssim"):
+        by, oracle = np.array(curves[error]["by_uncertainty"]), np.array(curves[error]["oracle"])
+        top = max(by.max(), oracle.max())
+        assert np.trapezoid((by - oracle) / top, MAX_FRACTIONS) == pytest.approx(getattr(record, f"ause_{error}_max"))
+        assert by[0] == pytest.approx(curves[error]["random"][0])  # nothing removed: every pixel
+    exact = sparsification_curves(truth, render, (render - truth) ** 2)
+    assert exact["fractions"] == list(CURVE_FRACTIONS) and len(exact["fractions"]) == 20
+    assert exact["rmse"]["by_uncertainty"] == pytest.approx(exact["rmse"]["oracle"], rel=1e-12)
+    flat = sparsification_curves(truth, render, torch.full_like(truth, 0.01))
+    for error in ("mae", "rmse", "dssim"):
+        assert flat[error]["by_uncertainty"] == pytest.approx(flat[error]["random"], rel=1e-9)
+
+
 def test_the_camera_path_by_hand():
     import torch
 

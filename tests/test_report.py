@@ -524,3 +524,20 @@ def test_psnr_against_cumulative_selection_time_by_hand(tmp_path):
     assert series["lego"]["gopre"] == ([0.0, 2.0, 5.0], [11.0, 12.0, 13.0])
     assert (tmp_path / "t.png").exists()
     assert psnr_vs_selection_time(rounds.drop(columns=["selection_cpu_seconds", "selection_seconds"]), tmp_path / "n.png") is None
+
+
+def test_fig7_extended_draws_each_methods_mean_relative_curve_and_the_oracle(tmp_path):
+    """Two seeds of one method on one scene, by hand: the plotted curve is the mean over seeds of
+    each job's curve over its own error of all pixels (its random curve)."""
+    from pipeline.report import figures
+    from pipeline.report.pixel_curves import COLUMNS, relative
+    rows = []
+    for seed, scale in ((0, 2.0), (1, 4.0)):
+        for error in ("mae", "rmse", "dssim"):
+            for f, by, oracle in ((0.0, 1.0, 1.0), (0.5, 0.8, 0.4)):
+                rows.append(("bonsai", "gopre", seed, error, f, scale * by, scale * oracle, scale * 1.0))
+    curves = relative(pd.DataFrame(rows, columns=COLUMNS))
+    assert curves["random"].tolist() == [1.0] * len(curves)
+    series = figures.pixel_sparsification(curves, {("bonsai", "gopre", "mae"): 0.1}, tmp_path / "f.png")
+    assert series["bonsai/mae/gopre"] == ([0.0, 0.5], [1.0, 0.8])  # not (2*0.8 + 4*0.8) / 2 = 2.4
+    assert set(series) == {f"bonsai/{e}/gopre" for e in ("mae", "rmse", "dssim")} and (tmp_path / "f.png").exists()

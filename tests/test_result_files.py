@@ -78,6 +78,7 @@ def test_every_episode_records_its_final_models_pixel_uncertainty(sweep, tmp_pat
     assert (finals["path_length"] > 0).all() and "Camera path (pool diameters)" in table
     assert finals["depth_abs_rel"].between(0, 1).all() and (finals["depth_pixels"] > 0).all()  # the generated scene
     assert "Depth abs rel" in table
+    assert (tmp_path / "r" / "figures" / "pixel_sparsification.png").exists()  # Fig. 7 extended
 
 
 def test_the_sweep_uses_exactly_the_benchmark_definition(sweep):

@@ -107,6 +107,9 @@ class FinalMetrics:
     path_length: float | None = None
     # depth error on the rendered test views where the truth is known (the generated scene; eval.depth)
     depth: dict | None = None
+    # the pixel-level sparsification curves behind ``uncertainty``'s AUSE, unnormalised
+    # (``pipeline.eval.model_uncertainty.sparsification_curves``; None: not measured)
+    uncertainty_curves: dict | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

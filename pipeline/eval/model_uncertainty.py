@@ -25,6 +25,7 @@ from torch import Tensor
 from pipeline.eval import pixel_uncertainty as pu
 from pipeline.eval.metrics import ssim_map
 
+CURVE_FRACTIONS = tuple(round(k / 20, 2) for k in range(20))  # removed: 0, 0.05, ..., 0.95
 MAP = "Laplace predictive variance of the final model (per channel; ranked by the sum)"
 
 
@@ -46,24 +47,46 @@ class PixelUncertainty:
         return asdict(self)
 
 
-def pixel_uncertainty(truth: Tensor, render: Tensor, variance: Tensor) -> PixelUncertainty:
-    """truth, render [T, H, W, 3] in [0, 1], variance [T, H, W, 3] (per channel) -> the record."""
+def _errors(truth: Tensor, render: Tensor, variance: Tensor) -> tuple[np.ndarray, dict[str, tuple[np.ndarray, bool]]]:
+    """The ranking score (the variance summed over channels) and, per error, the per-pixel values
+    and whether the curve is the root of the kept mean (RMSE)."""
     if not (truth.shape == render.shape == variance.shape) or truth.ndim != 4 or truth.shape[-1] != 3:
         raise ValueError(f"truth, render and variance must be [T, H, W, 3] alike, got {tuple(truth.shape)}, "
                          f"{tuple(render.shape)}, {tuple(variance.shape)}")
     t = truth.detach().double().cpu().numpy()
     r = render.detach().clamp(0, 1).double().cpu().numpy()
     v = np.clip(variance.detach().double().cpu().numpy(), 0.0, None)
-    score = v.sum(-1).ravel()
-    mae = np.abs(r - t).sum(-1).ravel()
-    squared = ((r - t) ** 2).sum(-1).ravel()
     dssim = np.concatenate([(1.0 - ssim_map(render[k], truth[k]).mean(-1)).ravel() for k in range(len(truth))])
+    return v.sum(-1).ravel(), {"mae": (np.abs(r - t).sum(-1).ravel(), False),
+                               "rmse": (((r - t) ** 2).sum(-1).ravel(), True), "dssim": (dssim, False)}
+
+
+def sparsification_curves(truth: Tensor, render: Tensor, variance: Tensor,
+                          fractions: tuple[float, ...] = CURVE_FRACTIONS) -> dict:
+    """truth, render, variance [T, H, W, 3] -> the curves of the kept pixels' error at each removal
+    fraction, unnormalised, per error (mae, rmse, dssim): ranked by the summed variance, by the true
+    error (oracle) and at random (the error of all pixels); what Fig. 7's pixel-level panels draw."""
+    score, errors = _errors(truth, render, variance)
+    out: dict = {"fractions": list(fractions)}
+    for name, (error, root) in errors.items():
+        s = pu.sparsification(error, score, np.asarray(fractions), root)
+        out[name] = {"by_uncertainty": s.by_uncertainty.tolist(), "oracle": s.oracle.tolist(),
+                     "random": s.random.tolist()}
+    return out
+
+
+def pixel_uncertainty(truth: Tensor, render: Tensor, variance: Tensor) -> PixelUncertainty:
+    """truth, render [T, H, W, 3] in [0, 1], variance [T, H, W, 3] (per channel) -> the record."""
+    score, errors = _errors(truth, render, variance)
+    t = truth.detach().double().cpu().numpy()
+    r = render.detach().clamp(0, 1).double().cpu().numpy()
+    v = np.clip(variance.detach().double().cpu().numpy(), 0.0, None)
     values = {}
-    for name, error, root in (("mae", mae, False), ("rmse", squared, True), ("dssim", dssim, False)):
+    for name, (error, root) in errors.items():
         values[f"ause_{name}_max"] = pu.ause_max(error, score, root)[0]
         values[f"ause_{name}_start"] = pu.ause_start(error, score, root)[0]
     sigma = np.sqrt(v).reshape(-1, 3)
     values["nll"] = pu.gaussian_nll(r.reshape(-1, 3), t.reshape(-1, 3), sigma)
     values["auce"] = pu.auce(r.reshape(-1, 3), t.reshape(-1, 3), sigma)[0]
-    values["pearson"], values["spearman"] = pu.correlations(score, mae)
+    values["pearson"], values["spearman"] = pu.correlations(score, errors["mae"][0])
     return PixelUncertainty(len(truth), **{k: float(x) for k, x in values.items()})

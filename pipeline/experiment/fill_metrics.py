@@ -16,12 +16,15 @@ For each finished episode job whose ``artifacts/result.json`` is version 1, the 
 Nothing is trained or selected; a second run finds nothing to do.
 
 ``fill_uncertainty``: for each finished episode whose result lacks today's final-model measures (no
-``final.uncertainty``, or no depth errors with their AUSE on a scene that knows its depth), the final
+``final.uncertainty`` or its sparsification curves ``final.uncertainty_curves``, or no depth errors
+with their AUSE on a scene that knows its depth), the final
 model is rendered on all its test views, must reproduce the recorded per-view PSNR (the same check),
 and ``job.measure_final_model`` (the code a job runs today) measures it on the job's first ``renders``
 test views with the posterior of the views it took (``selected_views``' initial + selected, as the
 result lists them). ``result.json`` and the final row of ``records.parquet`` get the ``unc_*``,
-``path_length`` and ``depth_*`` values; MLflow runs are not touched. An episode of a capture world
+``path_length`` and ``depth_*`` values (the curves go to ``result.json`` only); a value recorded
+before that the code measures differently now (beyond 1e-6, relative) refuses the job instead of
+being overwritten; MLflow runs are not touched. An episode of a capture world
 (views taken at poses outside the pool: their cameras are not kept) is refused.
 """
 
@@ -126,7 +129,7 @@ def measured_already(job: Job, episode: EpisodeResult) -> bool:
     """Whether the episode has today's final-model measures: the uncertainty, and the depth errors
     with their AUSE where the scene knows its depth (generated, COLMAP)."""
     final = episode.final
-    if final.uncertainty is None:
+    if final.uncertainty is None or final.uncertainty_curves is None:
         return False
     knows_depth = job.generate is not None or job.format == "colmap"
     return not knows_depth or (final.depth is not None and "ause_abs_rel" in final.depth)
@@ -149,7 +152,25 @@ def measured_episode(job: Job, layout: JobFolder, episode: EpisodeResult, data_r
         rendered = render(model, test.cameras[ids], scene.background.to(model.means))
     out = replace(episode, final=replace(episode.final), gaussians=model)
     measure_final_model(out, scene, rendered, min(job.renders, len(ids)), job.generate is not None)
+    for name, before, now in (("uncertainty", episode.final.uncertainty, out.final.uncertainty),
+                              ("depth", episode.final.depth, out.final.depth)):
+        moved = changed_values(before, now)
+        if moved:  # measured before by other code: refuse rather than overwrite silently
+            raise ValueError(f"{layout.result_file}: the {name} measured again differs from the recorded one "
+                             f"({moved}): not filled")
     return replace(out, gaussians=None)
+
+
+def changed_values(before: dict | None, now: dict | None, tolerance: float = 1e-6) -> str:
+    """'key recorded -> now, ...' for the numbers ``before`` had that ``now`` changes (relative
+    ``tolerance``); '' when none did or nothing was recorded."""
+    if not before or not now:
+        return ""
+    moved = [f"{k} {before[k]:.6g} -> {now.get(k)}" for k, v in before.items()
+             if isinstance(v, (int, float)) and not (isinstance(now.get(k), (int, float))
+                                                     and abs(now[k] - v) <= tolerance * max(1.0, abs(v)))
+             and not (v != v and now.get(k) != now.get(k))]  # NaN recorded, NaN again: unchanged
+    return ", ".join(moved[:3])
 
 
 def scored_model(job: Job, layout: JobFolder, episode: EpisodeResult, data_root: str | None, scenes: dict,

@@ -129,6 +129,41 @@ def sparsification(curves: pd.DataFrame, ause: pd.DataFrame, path: Path) -> dict
     return series
 
 
+PIXEL_ERRORS = {"mae": "MAE", "rmse": "RMSE", "dssim": "DSSIM"}
+
+
+def pixel_sparsification(curves: pd.DataFrame, ause: dict[tuple[str, str, str], float], path: Path) -> dict:
+    """Fig. 7 extended: one row per scene, one panel per error (MAE, RMSE, DSSIM). Per method the
+    mean over its seeds of the kept pixels' error relative to all pixels' (``pixel_curves.relative``)
+    against the fraction removed, most uncertain first; the oracle (mean over every job, black
+    dashed) and random (1, grey dotted); the legend gives each method's mean AUSE (max-norm.,
+    ``ause[(scene, method, error)]``). Returns the plotted means keyed "scene/error/method"."""
+    scenes = list(dict.fromkeys(curves["scene"]))
+    errors = [e for e in PIXEL_ERRORS if e in set(curves["error"])]
+    fig, axes = plt.subplots(len(scenes), len(errors), figsize=(4.6 * len(errors), 3.4 * len(scenes)), squeeze=False)
+    series = {}
+    for row, scene in zip(axes, scenes):
+        for ax, error in zip(row, errors):
+            part = curves[(curves["scene"] == scene) & (curves["error"] == error)]
+            for method, data in part.groupby("method", sort=False):
+                mean = data.groupby("fraction")["by_uncertainty"].mean()
+                series[f"{scene}/{error}/{method}"] = (mean.index.tolist(), mean.tolist())
+                score = ause.get((scene, method, error), np.nan)
+                ax.plot(mean.index, mean.values, marker="o", ms=2.5, lw=1.2, label=f"{method} (AUSE {score:.3f})")
+            oracle = part.groupby("fraction")["oracle"].mean()
+            ax.plot(oracle.index, oracle.values, color="black", ls="--", label="oracle")
+            ax.axhline(1.0, color="gray", ls=":", label="random")
+            seeds = sorted(set(part["seed"]))
+            ax.set_title(f"{scene}: {PIXEL_ERRORS[error]} ({len(seeds)} seed{'s' if len(seeds) != 1 else ''})", fontsize=9)
+            ax.set_xlabel("fraction of pixels removed (most uncertain first)")
+            ax.set_ylabel(f"{PIXEL_ERRORS[error]} of the rest / of all pixels")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=6.5)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return series
+
+
 def image_grid(images: dict[str, list[Path]], path: Path, title: str) -> dict[str, int]:
     """Rows = labels (methods), each row the images side by side; returns images per row."""
     rows = [(label, [np.asarray(Image.open(p).convert("RGB")) for p in files])

@@ -15,6 +15,7 @@ import pandas as pd
 
 from pipeline.report import falls, figures, search
 from pipeline.report.identity import check_rows, identity_markdown
+from pipeline.report.pixel_curves import pixel_curves, relative
 from pipeline.report.rows import finished
 from pipeline.report.stats import default_reference, paired_comparisons, with_curve_area
 from pipeline.report.tables import (UNCERTAINTY_METRICS, PairedTable, Table, build_table, paired_to_latex,
@@ -345,6 +346,17 @@ def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
     return out
 
 
+def pixel_ause(finals: pd.DataFrame) -> dict[tuple[str, str, str], float]:
+    """(scene, method, error) -> the mean pixel-level AUSE (max-norm.) of the final rows."""
+    out = {}
+    for error in ("mae", "rmse", "dssim"):
+        column = f"unc_ause_{error}_max"
+        if column in finals:
+            for (scene, method), value in finals.groupby(["scene", "method"])[column].mean().items():
+                out[(scene, method, error)] = float(value)
+    return out
+
+
 def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
                  reference: str | None = None, images: bool = True) -> dict[str, dict]:
     """The report's figures; ``images=False``: curves only, no figure made of the scene's images
@@ -363,6 +375,10 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
     if not curves.empty:
         made["sparsification.png"] = figures.sparsification(
             curves, finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
+    pixel = pixel_curves(sweep_dir, finished(frame, "final", "episode"))
+    if not pixel.empty:
+        made["pixel_sparsification.png"] = figures.pixel_sparsification(
+            relative(pixel), pixel_ause(finished(frame, "final", "episode")), fig_dir / "pixel_sparsification.png")
     if not images:
         return made
     final = finished(frame, "final", "episode")
