@@ -13,6 +13,9 @@ $(STAMP): pyproject.toml requirements.lock
 	# gopre itself without resolving anything again.
 	$(BIN)/pip install -q -r requirements.lock
 	$(BIN)/pip install -q --no-deps -e .
+	# Compile the CPU kernels once into numba's cache beside the sources (2-3 min on 2 cores), so the
+	# first sweep starts at once and the test suite's workers do not each compile them.
+	$(BIN)/python -m pipeline.experiment.warmup
 	touch $(STAMP)
 
 .PHONY: env lock demo test test-fast lint docs e2e latex texlive mutate bench postgres

@@ -51,3 +51,16 @@ def compile_kernels(say: Callable[[str], None]) -> float | None:
     seconds = time.perf_counter() - start
     say(f"compiled the CPU kernels in {seconds:.0f} s ({compile_seconds() - compiling:.0f} s of it numba's)")
     return seconds
+
+
+def main() -> int:
+    """``python -m pipeline.experiment.warmup`` (``make env`` runs it): compile and cache the kernels
+    now, so that neither the first sweep nor the test suite's workers wait for them."""
+    seconds = compile_kernels(lambda line: print(line, flush=True))
+    if seconds is None:
+        print("the CPU kernels are compiled and cached already (or disabled): nothing to do")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
