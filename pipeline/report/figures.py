@@ -136,7 +136,7 @@ def pixel_sparsification(curves: pd.DataFrame, ause: dict[tuple[str, str, str], 
     """Fig. 7 extended: one row per scene, one panel per error (MAE, RMSE, DSSIM). Per method the
     mean over its seeds of the kept pixels' error relative to all pixels' (``pixel_curves.relative``)
     against the fraction removed, most uncertain first; the oracle (mean over every job, black
-    dashed) and random (1, grey dotted); the legend gives each method's mean AUSE (max-norm.,
+    dashed) and a random ranking (1, grey dotted); the legend gives each method's mean AUSE (max-norm.,
     ``ause[(scene, method, error)]``). Returns the plotted means keyed "scene/error/method"."""
     scenes = list(dict.fromkeys(curves["scene"]))
     errors = [e for e in PIXEL_ERRORS if e in set(curves["error"])]
@@ -152,13 +152,13 @@ def pixel_sparsification(curves: pd.DataFrame, ause: dict[tuple[str, str, str], 
                 ax.plot(mean.index, mean.values, marker="o", ms=2.5, lw=1.2, label=f"{method} (AUSE {score:.3f})")
             oracle = part.groupby("fraction")["oracle"].mean()
             ax.plot(oracle.index, oracle.values, color="black", ls="--", label="oracle")
-            ax.axhline(1.0, color="gray", ls=":", label="random")
+            ax.axhline(1.0, color="gray", ls=":", label="random ranking")
             seeds = sorted(set(part["seed"]))
             ax.set_title(f"{scene}: {PIXEL_ERRORS[error]} ({len(seeds)} seed{'s' if len(seeds) != 1 else ''})", fontsize=9)
             ax.set_xlabel("fraction of pixels removed (most uncertain first)")
             ax.set_ylabel(f"{PIXEL_ERRORS[error]} of the rest / of all pixels")
             ax.grid(alpha=0.3)
-            ax.legend(fontsize=6.5)
+            ax.legend(fontsize=6, loc="best", framealpha=0.6)
     fig.tight_layout()
     save_figure(fig, path)
     return series
