@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml requirements.lock
 	$(BIN)/python -m pipeline.experiment.warmup
 	touch $(STAMP)
 
-.PHONY: env lock demo test test-fast lint docs e2e latex texlive mutate bench postgres
+.PHONY: env lock demo test test-fast reproduce lint docs e2e latex texlive mutate bench postgres
 env: $(STAMP)
 
 # Re-lock after changing pyproject.toml's dependencies: resolve them in a fresh venv, freeze it.
@@ -40,6 +40,11 @@ demo: $(STAMP)
 # share one of them, one after another (tests/conftest.py, CLUSTER_MODULES).
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup
+
+# Every published episode of reports/reproduce/episodes.json re-run to its last digit, those the
+# suite leaves out for their time (the full bonsai episode, 6 min) included.
+reproduce: $(STAMP)
+	GOPRE_REPRODUCE_ALL=1 $(BIN)/python -m pytest -q tests/test_reproduce.py -k published_episode
 
 # Lint and types (CI runs it before the tests): ruff's pyflakes/pycodestyle rules, the layer contracts
 # (import-linter), and mypy over the package (pyproject.toml: its config and the modules still on the
