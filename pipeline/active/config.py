@@ -120,6 +120,12 @@ class EpisodeConfig:
         return out
 
 
+def round_seed(seed: int, round_index: int) -> int:
+    """The seed of a round's own random draws (its goal probes, a pose search), from the episode's
+    seed and the round: independent of what was picked before (paper Sec. 5)."""
+    return seed * 100_003 + round_index
+
+
 def paper_episode(**changes) -> EpisodeConfig:
     """The paper's scale: 30k iterations at full resolution, a view every 100 epochs."""
     return replace(EpisodeConfig(fit=paper_preset(), epochs_per_view=100), **changes)

@@ -24,7 +24,7 @@ import torch
 from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy, scores_any_pose
 from pipeline.acquisition.validation import RoundAsk, check_selection
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
-from pipeline.active.config import EpisodeConfig
+from pipeline.active.config import EpisodeConfig, round_seed
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
 from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
@@ -102,7 +102,7 @@ def episode_extent(scene: Scene, views: ProtocolViews) -> float:
 def probes_of_round(seed: int, round_index: int, views: ProtocolViews) -> list[int]:
     """K probe ids for a round, redrawn every round independently of the selection history
     (paper Sec. 5: a generator of its own, seeded by (seed, round)); benchmark definitions list them."""
-    gen = torch.Generator().manual_seed(seed * 100_003 + round_index)
+    gen = torch.Generator().manual_seed(round_seed(seed, round_index))
     return sample_probes(views.probe_ids, views.probes, gen)
 
 

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from pipeline.acquisition import SelectionContext
 from pipeline.acquisition.base import PoseScorer
-from pipeline.active.config import EpisodeConfig
+from pipeline.active.config import EpisodeConfig, round_seed
 from pipeline.cameras import Cameras
 from pipeline.data.manifolds import SectorManifold
 from pipeline.data.protocols import ProtocolConfig, ProtocolViews, resolved_manifold, scene_up
@@ -124,7 +124,7 @@ def search_next_pose(scorer: PoseScorer, ctx: SelectionContext, pool_costs: dict
     """The pose of least cost (``scorer``): starts from the poses of the pool candidates of least
     cost and random poses, then CMA-ES; seeded by (episode seed, round)."""
     options = cfg.search_options()
-    seed = cfg.seed * 100_003 + round_index
+    seed = round_seed(cfg.seed, round_index)
     best_ids = sorted(pool_costs, key=lambda i: (pool_costs[i], i))[:options["pool_starts"]]
     position = {view: k for k, view in enumerate(ctx.candidate_ids)}
     starts = []
