@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 from pipeline.experiment.console import console
+from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.outcome import TRACEBACK_ARTIFACT, JobOutcome, RoundMessage
 from pipeline.experiment.spec import Job
 
@@ -76,7 +77,7 @@ class Progress:
 def _headline(outcome: JobOutcome, job: Job) -> str:
     if not outcome.finished:  # the error's last line, and where its whole traceback is
         last = next((ln.strip() for ln in reversed(outcome.traceback.splitlines()) if ln.strip()), "?")
-        path = Path(job.execution.job_dir) / "artifacts" / TRACEBACK_ARTIFACT
+        path = JobFolder(Path(job.execution.job_dir)).artifacts / TRACEBACK_ARTIFACT
         return f"after {outcome.attempts} attempt(s): {last[:300]} (traceback: {path})"
     if outcome.final is not None:
         return (f"test PSNR {outcome.final.psnr:.2f} dB (all {outcome.final.test_views} test views) in "

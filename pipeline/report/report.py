@@ -21,7 +21,7 @@ from pipeline.report.stats import default_reference, paired_comparisons, with_cu
 from pipeline.report.tables import (UNCERTAINTY_METRICS, PairedTable, Table, build_table, paired_to_latex,
                                     paired_to_markdown, to_latex, to_markdown)
 
-from pipeline.interchange.layout import RECORDS  # the one spelling of the records file
+from pipeline.interchange.layout import RECORDS, SweepFolder  # the one spelling of the folder layout
 
 
 def load_records(source: str | Path) -> pd.DataFrame:
@@ -341,7 +341,7 @@ def grid_images(sweep_dir: Path | None, final: pd.DataFrame, sub: str,
         if root is None or not isinstance(config_hash, str):
             out[label] = []
             continue
-        images = root / "jobs" / config_hash / "artifacts" / sub
+        images = SweepFolder(root).job(config_hash).artifacts / sub
         out[label] = sorted(images.glob("*.png"))[:4] if images.exists() else []
     return out
 

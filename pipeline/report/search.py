@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.interchange.layout import SweepFolder
 from pipeline.report.rows import finished
 from pipeline.report.stats import paired_comparisons, with_curve_area
 from pipeline.report.tables import PairedTable
@@ -190,7 +191,7 @@ def landscape_jobs(frame: pd.DataFrame, sweep_dir: Path) -> dict[str, Path]:
     out = {}
     for (scene, setting, method), part in rounds.groupby(["scene", "setting", "method"], sort=False):
         first = part.sort_values("seed").iloc[0]
-        path = sweep_dir / "jobs" / str(first["config_hash"]) / "artifacts" / "result.json"
+        path = SweepFolder(sweep_dir).job(str(first["config_hash"])).result_file
         if path.exists():
             label = ", ".join(x for x in (method, scene, setting, f"seed {first['seed']}") if x)
             out[label] = path
