@@ -139,7 +139,7 @@ class SweepRun:
         if self.todo and compiles_here(self.executor, self.todo):
             compile_kernels(lambda line: LOG.info(f"[{self.name}] {line}"))
         if self.todo:
-            self.progress = Progress(self.name, len(self.todo), getattr(self.executor, "slots", 1))
+            self.progress = Progress(self.name, len(self.todo), self.executor.slots)
             try:
                 if not missing:  # (the replay above opened the sweep's run already)
                     with critical():
@@ -215,7 +215,7 @@ class SweepRun:
             self.untracked.append(job.config_hash)
         save_artifacts(self.output_dir, job, outcome)
         self.records.add(job_rows(job, outcome, run_id))
-        self.progress.slots = getattr(self.executor, "slots", 1)
+        self.progress.slots = self.executor.slots
         self.progress.update(job, outcome)
 
     def on_round(self, job: Job, message: RoundMessage | StepProgress) -> None:
@@ -226,7 +226,7 @@ class SweepRun:
             self.track_round(job, message)
 
     def track_round(self, job: Job, message: RoundMessage) -> None:
-        self.progress.slots = max(1, getattr(self.executor, "slots", 1))  # known once the executor started
+        self.progress.slots = max(1, self.executor.slots)  # known once the executor started
         self.progress.round(job, message)
         try:
             self.tracker.log_round(job, message)
