@@ -114,7 +114,7 @@ class EpisodeConfig:
         for optional in ("reset_recovery", "densify_settle"):  # so does one of the paper's rules
             if out[optional] is None:
                 del out[optional]
-        if self.world == "dataset":  # so are the world's fields (issue 28)
+        if self.world == "dataset":  # so are the world's fields (they matter only beyond the pool)
             for key in ("world", "world_model", "search"):
                 del out[key]
         return out
@@ -139,7 +139,7 @@ def cpu_episode(**changes) -> EpisodeConfig:
     reset and the start of big-Gaussian pruning every tenth of the run, the SH degree raised every
     1/30 of it (every number below is 3DGS's scaled by 2000 / 30k, rounded). Until the fidelity
     fixes the reset interval was a third of the run, so the big-Gaussian prune switched on
-    mid-episode and removed a quarter of a real scene's Gaussians at once (issue 26).
+    mid-episode and removed a quarter of a real scene's Gaussians at once.
     3DGS's world-size prune (max scale > 0.1 x extent) is off: with <= 10k Gaussians, 100x fewer
     than 3DGS, a real scene's background is covered by Gaussians above that size, and the rule
     removed ~15% of them at once whenever it switched on (bonsai: -3.7 dB in one round, measured;

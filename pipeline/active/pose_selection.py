@@ -1,4 +1,4 @@
-"""Next-best-view beyond the pool (issue 28): a pose searched in a pose space, its image captured
+"""Next-best-view beyond the pool: a pose searched in a pose space, its image captured
 by a simulator, trained on like any view.
 
 An episode with ``world != "dataset"`` still scores its pool each round (the records keep those

@@ -62,7 +62,7 @@ class RoundRecord:
     # numba's one-time kernel compilation during this round's selection, taken out of
     # selection_seconds, selection_cpu_seconds and per_candidate_ms (a fresh machine's first rounds)
     compile_seconds: float = 0.0
-    # world != dataset (issue 28): the captured pose of each selected view (azimuth_deg,
+    # world != dataset (views taken beyond the pool): the captured pose of each selected view (azimuth_deg,
     # elevation_deg, radius) and the search's account (score, best_start_score, best_pool_score,
     # evaluations, seconds, taken: "search" | "pool", evaluated: [[az, el, r, score], ...])
     poses: list[list[float]] | None = None

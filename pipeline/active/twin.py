@@ -1,4 +1,4 @@
-"""The digital twin of a scene (issue 28): a reference splat trained on every training view of the
+"""The digital twin of a scene: a reference splat trained on every training view of the
 scene (the global protocol's initial and pool views; its test views held out), the capture
 simulator of ``world=twin``. Views captured off the dataset's poses are the twin's renders."""
 

@@ -35,7 +35,7 @@ from pipeline.experiment.splat_section import job_form
 # protocol/splat: overrides for this method; world: this method's capture simulator (gopre_search)
 METHOD_KEYS = {"strategy", "options", "protocol", "splat", "world"}
 # Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
-# never resumes or reuses results of the code before it. "fidelity-1": issue 26 (scene extent,
+# never resumes or reuses results of the code before it. "fidelity-1": the paper-fidelity fixes (scene extent,
 # tau -> 0, ActiveNeRF port, prune switch, kNN scales, probes incl. the initial views).
 RESULTS_REVISION = "fidelity-1"
 NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")

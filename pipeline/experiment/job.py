@@ -133,7 +133,7 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
     pending_images: dict[int, dict[str, bytes]] = {}
 
     def on_selection(ep, rec):
-        if job.execution.round_models:  # the model that made this pick, for pipeline-view
+        if job.execution.round_models:  # the model that made this pick, for gopre-view
             ply.save(ep.trainer.rendered_gaussians, JobFolder(folder).round_model(rec.round))
         count = job.execution.round_images
         if count > 0:

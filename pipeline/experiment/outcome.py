@@ -1,5 +1,5 @@
 """What one job ended with, and what it says while it runs: the typed records every room after
-the worker reads (issue 30).
+the worker reads.
 
 A worker returns a ``JobOutcome``; across Ray it travels as ``to_dict()`` (plain data) and the
 driver reads it back with ``from_dict``. The executors, the sweep driver, the records and the

@@ -119,7 +119,7 @@ class SweepRun:
         self.records = RecordsFile(output_dir)
         self.failed, self.untracked = 0, []
         self.tracker = self.executor = self.progress = None
-        self.todo: list[dict] = []
+        self.todo: list[Job] = []
         self.by_hash = {j.config_hash: j for j in jobs}  # what a replay looks its jobs up in
         self.tracked: set[str] = set()  # the config hashes the store has as FINISHED (prepare)
 

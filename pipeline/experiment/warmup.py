@@ -14,7 +14,7 @@ from typing import Callable
 
 KERNEL_MODULES = ("pipeline.splat.kernels", "pipeline.splat.project_kernels", "pipeline.fisher.diagonal_kernels",
                   "pipeline.fit.loss_kernels")
-EXPECTED_WAIT = "about 2-3 min on 2 cores"  # measured on a fresh clone: 137-141 s (issue 47)
+EXPECTED_WAIT = "about 2-3 min on 2 cores"  # measured on a fresh clone, idle: 137-141 s
 
 
 def kernels_cached() -> bool:

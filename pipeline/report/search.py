@@ -1,4 +1,4 @@
-"""Beyond the pool (issue 28): how a sweep's pose searches went, read from its records.
+"""Beyond the pool: how a sweep's pose searches went, read from its records.
 
 A method searched off the pool when its round rows carry ``search_taken`` (``search``: the searched
 pose beat the pool's best candidate and was captured; ``pool``: the pool pick stood;

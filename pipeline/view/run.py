@@ -155,7 +155,7 @@ def sweep_listing(folder: Path) -> str:
         done = "" if path.is_dir() else "  (not started)"
         lines.append(f"  {j.method} / {j.scene} / seed {j.seed}{setting}: {path}{done}")
     if jobs:
-        lines.append(f"e.g. pipeline-view {sweep.job(jobs[0].config_hash).path}")
+        lines.append(f"e.g. gopre-view {sweep.job(jobs[0].config_hash).path}")
     return "\n".join(lines)
 
 

@@ -1,4 +1,4 @@
-"""Beyond the candidate pool (issue 28): capture simulators, a space of camera poses, and a
+"""Beyond the candidate pool: capture simulators, a space of camera poses, and a
 derivative-free search of a score over it. The episode's use of them is not wired yet."""
 
 from pipeline.world.pose_space import LookAtShell, pose_coordinates
