@@ -11,14 +11,12 @@ from typing import TYPE_CHECKING
 from pipeline.active.config import EpisodeConfig, episode_preset
 from pipeline.bounds import under
 from pipeline.data.protocols import ProtocolConfig
-from pipeline.experiment.schema import splat_problems
+from pipeline.experiment.schema import EPISODE_SETTINGS, SPLAT_FIELDS, splat_problems
 
 if TYPE_CHECKING:
     from pipeline.experiment.spec import Job
 
-SPLAT_KEYS = {"preset", "iterations", "image_width", "max_gaussians", "epochs_per_view",
-              "curve_test_views", "post_selection", "views_per_round", "pool_keep_fraction", "lpips",
-              "init", "fit", "reset_recovery", "densify_settle"}
+SPLAT_KEYS = {"preset", "init", "fit", *SPLAT_FIELDS}
 # init (+splat.init=ply:PATH), reset_recovery (+splat.reset_recovery=N) and densify_settle
 # (+splat.densify_settle=N) are optional; fit (conf/splat/<preset>.yaml lists the recipe, e.g.
 # splat.fit.lr.means_init=1e-4) reaches a job as what differs from the preset (splat_section.job_form),
@@ -60,10 +58,7 @@ def episode_config(job: Job) -> EpisodeConfig:
             raise ConfigError(under(err, "splat.fit.")) from None
     fit = fit.with_changes(seed=job.seed)
     protocol = protocol_config(job.protocol)
-    changes = {k: splat[k] for k in ("epochs_per_view", "curve_test_views", "post_selection",
-                                      "views_per_round", "pool_keep_fraction", "lpips", "init", "reset_recovery",
-                                      "densify_settle")
-               if splat.get(k) is not None}
+    changes = {k: splat[k] for k in (*EPISODE_SETTINGS, "init") if splat.get(k) is not None}
     if changes.get("curve_test_views") == "all":  # null keeps the preset's curve subset
         changes["curve_test_views"] = None
     changes.update(world_changes(job.world))

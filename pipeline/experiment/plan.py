@@ -17,6 +17,7 @@ from pipeline.active.schedule import Schedule, events_before_evaluations, scaled
 from pipeline.data.scene import traits_of
 from pipeline.experiment.data_changes import data_changes
 from pipeline.experiment.records import RecordsFile
+from pipeline.experiment.schema import EPISODE_SETTINGS
 from pipeline.experiment.spec import Job
 from pipeline.fit.config import FitConfig
 
@@ -61,8 +62,7 @@ def hyperparameter_text(jobs: list[Job]) -> str:
     for job in jobs:
         cfg = job.episode
         values = {**{f"fit.{k}": v for k, v in cfg.fit.flat().items() if k != "seed"},
-                  **{k: getattr(cfg, k) for k in ("epochs_per_view", "views_per_round", "pool_keep_fraction",
-                                                  "post_selection", "reset_recovery", "densify_settle", "curve_test_views", "lpips")}}
+                  **{k: getattr(cfg, k) for k in EPISODE_SETTINGS}}
         text = "\n".join(f"  {k} = {v}" for k, v in values.items())
         groups.setdefault(text, []).append(f"{job.method} on {job.scene}")
     out = []

@@ -97,13 +97,17 @@ class TrackingSection:
     replay_wait_s: float = bounded(120.0, FLOAT, ge=0)
 
 
+# The episode's settings: every declared field of ``EpisodeConfig`` but those a sweep sets through
+# other keys (the seed: ``seeds``; the world: ``world``; masks: the dataset's). Declared once, on the
+# typed config: a new bounded field there is a new ``splat.<name>`` key, checked, documented, planned.
+EPISODE_SET_ELSEWHERE = ("seed", "world", "masks")
+EPISODE_SETTINGS = tuple(f.name for f in fields(EpisodeConfig)
+                         if bound_of(f) is not None and f.name not in EPISODE_SET_ELSEWHERE)
 # ``splat.*`` keys that set a typed config's field (null: the preset's value); "all" for
 # ``curve_test_views`` means every test view
 SPLAT_FIELDS = {"iterations": (FitConfig, "iterations"), "image_width": (FitConfig, "image_width"),
                 "max_gaussians": (DensifyConfig, "max_gaussians"),
-                **{name: (EpisodeConfig, name) for name in ("epochs_per_view", "curve_test_views", "post_selection",
-                                                            "views_per_round", "pool_keep_fraction", "lpips",
-                                                            "reset_recovery", "densify_settle")}}
+                **{name: (EpisodeConfig, name) for name in EPISODE_SETTINGS}}
 
 
 # FitConfig fields a sweep sets through other keys: ``splat.iterations`` (it rescales every schedule)
