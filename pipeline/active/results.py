@@ -153,6 +153,9 @@ class EpisodeResult:
         n = len(pool_cameras)
         if all(i < n for i in ids):
             return pool_cameras[ids]
+        if self.acquired_cameras is None:
+            raise ValueError(f"views {[i for i in ids if i >= n]} are beyond the pool of {n}, and no captured "
+                             "camera is kept")
         return Cameras.cat([self.acquired_cameras[[i - n]] if i >= n else pool_cameras[[i]] for i in ids])
 
     def to_dict(self) -> dict:

@@ -39,7 +39,8 @@ def main(argv=None) -> list[dict]:
                              "before of a before/after, with same_as_first saying whether the "
                              "picks and the final PSNR agree)")
     args = parser.parse_args(argv)
-    rows, torch_wall = [], None
+    rows: list[dict] = []
+    torch_wall = None
     for backend in args.backends:
         with backend_variant(backend):
             row = run_one(args, backend)
@@ -69,7 +70,8 @@ def run_one(args, backend: str) -> dict:
     return {"scene": str(args.scene), "strategy": args.strategy, "backend": backend,
             "preset": args.preset, "protocol": args.protocol, "seed": args.seed,
             "wall_s": round(time.perf_counter() - start, 1),
-            "final_psnr": round(result.final.psnr, 3), "final_psnr_full": result.final.psnr, "final_ssim": round(result.final.ssim, 4),
+            "final_psnr": round(result.final.psnr, 3), "final_psnr_full": result.final.psnr,
+            "final_ssim": None if result.final.ssim is None else round(result.final.ssim, 4),
             "final_lpips": result.final.lpips, "lpips_status": result.final.lpips_status,
             "selected": result.selected, "initial": result.initial,
             "curve": [[r.num_views, round(r.test_psnr, 3)] for r in result.rounds],

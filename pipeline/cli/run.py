@@ -90,6 +90,7 @@ def main(cfg: DictConfig) -> None:
             print(f"{command_name('run')}: config error: {err}", file=sys.stderr)
             sys.exit(2)
         executor = OmegaConf.to_container(cfg.executor, resolve=True)
+        assert isinstance(executor, dict)  # a config group: a mapping
         print(hyperparameter_text(jobs) + "\n")
         print(schedule_text(jobs) + "\n")
         print(plan_text(str(cfg.name), plan_jobs(jobs, Path(str(cfg.output_dir))), slots(executor, jobs),

@@ -58,7 +58,8 @@ def camera_figure(scene_path: Path, out: Path, max_points: int = 4000, up_choice
     axes[0].legend(loc="lower left", fontsize=8)
     how = (f"up axis: {goal_up if isinstance(goal_up, str) else 'given'}" if goal_up is not None
            else f"up axis: {scene.info['up']} (capture.json)" if scene.info.get("up") is not None
-           else "up axis estimated from the cameras" if scene.traits.up == "estimated" else "up axis +z")
+           else "up axis estimated from the cameras" if scene.traits is not None and scene.traits.up == "estimated"
+           else "up axis +z")
     fig.suptitle(f"{scene.name}: {len(pool)} cameras ({scene.format}), {how}")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

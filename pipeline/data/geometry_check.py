@@ -269,10 +269,9 @@ def check_geometry(path: str | Path, images: str | Path | None = None, every: in
     if len(range(0, len(model.names), step)) < 3:
         raise DataError(f"{path}: {len(model.names)} registered images; a geometry check needs at least 3 in its "
                         f"subset (every {step}th)")
-    own = work is None
-    work = Path(tempfile.mkdtemp(prefix="gopre-geometry-")) if own else work
+    folder = Path(tempfile.mkdtemp(prefix="gopre-geometry-")) if work is None else work
     try:
-        return verdict(model, witnesses(model, step, work, say), step, lambda: time.perf_counter() - start)
+        return verdict(model, witnesses(model, step, folder, say), step, lambda: time.perf_counter() - start)
     finally:
-        if own:
-            shutil.rmtree(work, ignore_errors=True)
+        if work is None:
+            shutil.rmtree(folder, ignore_errors=True)

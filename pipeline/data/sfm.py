@@ -86,7 +86,7 @@ def quiet_colmap(log_dir: Path) -> None:
     log_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.logging.logtostderr = False
     pycolmap.logging.alsologtostderr = False
-    pycolmap.logging.stderrthreshold = pycolmap.logging.ERROR
+    pycolmap.logging.stderrthreshold = pycolmap.logging.ERROR  # type: ignore[assignment]  # a Level, stubbed as int
     pycolmap.logging.log_dir = str(log_dir)
 
 

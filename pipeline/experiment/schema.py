@@ -116,7 +116,10 @@ FIT_SET_ELSEWHERE = ("iterations", "seed")
 
 
 def field_bound(cls, name: str) -> Bound:
-    return bound_of(next(f for f in fields(cls) if f.name == name))
+    bound = bound_of(next(f for f in fields(cls) if f.name == name))
+    if bound is None:
+        raise ValueError(f"{cls.__name__}.{name} declares no bound")
+    return bound
 
 
 def splat_bound(key: str) -> Bound:

@@ -49,4 +49,5 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
     for i, b in enumerate(sh_basis(degree, dirs)):
         term = b[:, None] * coeffs[:, i, :]
         result = term if result is None else result + term
+    assert result is not None  # degree >= 0: one basis function at least
     return result

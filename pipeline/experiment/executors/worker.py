@@ -118,6 +118,8 @@ def read_starts(folder: Path) -> list[dict]:
 def run_here(job: Job, scene: Scene | None = None, report: Report | None = None,
              expected: DriverIdentity | None = None) -> JobOutcome:
     """Run ``job`` in this process (its retries included); never raises for an application error."""
+    if job.execution is None:
+        raise ValueError(f"{job.label}: a job without its execution settings cannot run")
     folder = Path(job.execution.job_dir)
     starts = record_start(folder)
     problem = identity_problem(expected)
