@@ -108,8 +108,8 @@ class GeometryCheck:
                     f"{self.registered} of {self.subset}, every {self.every}th; {len(self.witnesses)} asked)")
         asked = (f" ({len(self.witnesses)} witnesses asked, this the "
                  f"{'one that agrees' if self.verdict == CONSISTENT else 'closest'})" if len(self.witnesses) > 1 else "")
-        return (f"geometry check: {self.registered} of {self.subset} photos (every {self.every}th from the "
-                f"{self.first + 1}th) reconstructed anew with exhaustive matching{asked}: median centre error "
+        return (f"geometry check: {self.registered} of {self.subset} photos (every {self.every}th from photo "
+                f"{self.first + 1}) reconstructed anew with exhaustive matching{asked}: median centre error "
                 f"{100 * self.median_centre_error:.1f}% of the cameras' diameter (max {100 * self.max_centre_error:.1f}%), "
                 f"relative rotation {self.median_rotation_error_deg:.2f} deg (max {self.max_rotation_error_deg:.2f}; "
                 f"aligned on {self.fitted_on} of them, the others more than {TRIM_FACTOR:.0f} medians off): {self.verdict}")
@@ -235,7 +235,7 @@ def witnesses(model: ModelPoses, every: int, work: Path, say: Progress, count: i
     """The witnesses of ``model``, made one at a time as they are asked for (witness k: every
     ``every``-th photo from ``witness_firsts``' k-th, COLMAP seeded with k, in ``work/witness_k``)."""
     for k, first in enumerate(witness_firsts(every, count)):
-        say(f"geometry check: witness {k + 1} (every {every}th photo from the {first + 1}th) ...")
+        say(f"geometry check: witness {k + 1} (every {every}th photo from photo {first + 1}) ...")
         subset, size = reconstruct_subset(model, every, work / f"witness_{k}", say, first=first, seed=k)
         yield first, subset, size
 
