@@ -53,9 +53,9 @@ class Bound:
             if low and high:
                 text += f" in {low}, {high}"
             elif low:
-                text += f" >{'=' if self.ge is not None else ''} {_num(self.ge if self.ge is not None else self.gt)}"
+                text += f" >{'=' if self.ge is not None else ''} {_num(self.ge if self.ge is not None else self.gt)}"  # type: ignore[arg-type]  # low: one of them is set
             elif high:
-                text += f" <{'=' if self.le is not None else ''} {_num(self.le if self.le is not None else self.lt)}"
+                text += f" <{'=' if self.le is not None else ''} {_num(self.le if self.le is not None else self.lt)}"  # type: ignore[arg-type]  # high: one of them is set
             if self.pattern_hint:
                 text += f" ({self.pattern_hint})"
         return text + (", or null" if self.nullable else "") + "".join(f' or "{a}"' for a in self.also)
@@ -152,8 +152,8 @@ def declared(cls, where: str = "") -> list[tuple[str, Bound, object]]:
         default = _default(f)
         if is_dataclass(default):
             out += declared(type(default), f"{where}{f.name}.")
-        elif bound_of(f) is not None:
-            out.append((f"{where}{f.name}", bound_of(f), default))
+        elif (bound := bound_of(f)) is not None:
+            out.append((f"{where}{f.name}", bound, default))
     return out
 
 

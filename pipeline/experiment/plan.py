@@ -164,7 +164,8 @@ def slots(executor: dict, jobs: list[Job]) -> int:
     if executor.get("kind") != "ray" or not jobs:
         return 1
     cpus = executor.get("num_cpus") or os.cpu_count() or 1
-    return max(1, int(cpus) // max(1, min(int(j.execution.threads) for j in jobs)))
+    threads = min((int(j.execution.threads) for j in jobs if j.execution is not None), default=1)
+    return max(1, int(cpus) // max(1, threads))
 
 
 def format_duration(seconds: float) -> str:
@@ -175,7 +176,7 @@ def format_duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-def plan_text(name: str, planned: list[PlannedJob], parallel: int, warnings: list[str] = ()) -> str:
+def plan_text(name: str, planned: list[PlannedJob], parallel: int, warnings: tuple[str, ...] | list[str] = ()) -> str:
     """The job table, then ``warnings`` (allowed values far above anything measured), then the
     summary with the estimate."""
     header = ["#", "dataset", "scene", "method", "seed", "axes", "config hash", "status", "estimate"]

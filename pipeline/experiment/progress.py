@@ -77,9 +77,10 @@ class Progress:
 def _headline(outcome: JobOutcome, job: Job) -> str:
     if not outcome.finished:  # the error's last line, and where its whole traceback is
         last = next((ln.strip() for ln in reversed(outcome.traceback.splitlines()) if ln.strip()), "?")
-        path = JobFolder(Path(job.execution.job_dir)).artifacts / TRACEBACK_ARTIFACT
+        path = JobFolder(Path(job.execution.job_dir if job.execution is not None else ".")).artifacts / TRACEBACK_ARTIFACT
         return f"after {outcome.attempts} attempt(s): {last[:300]} (traceback: {path})"
     if outcome.final is not None:
         return (f"test PSNR {outcome.final.psnr:.2f} dB (all {outcome.final.test_views} test views) in "
                 f"{outcome.seconds or 0:.0f} s")
-    return f"AUSE {json.dumps({k: round(v, 3) for k, v in outcome.uncertainty.ause.items()})}"
+    ause = outcome.uncertainty.ause if outcome.uncertainty is not None else {}
+    return f"AUSE {json.dumps({k: round(v, 3) for k, v in ause.items()})}"

@@ -63,7 +63,7 @@ def _start_thread_pool(threads: int) -> None:
     import numba
     from numba.np.ufunc import parallel
     if "NUMBA_NUM_THREADS" not in os.environ and not parallel._is_initialized:
-        numba.config.NUMBA_NUM_THREADS = parallel.NUM_THREADS = max(1, threads)
+        numba.config.NUMBA_NUM_THREADS = parallel.NUM_THREADS = max(1, threads)  # type: ignore[attr-defined]
     parallel._launch_threads()
 
 
@@ -182,7 +182,7 @@ def use_threads() -> int:
     if threads <= 1 or getattr(_THREAD, "side_by_side", False):
         return 1
     import numba
-    threads = max(1, min(threads, numba.config.NUMBA_NUM_THREADS))
+    threads = max(1, min(threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     numba.set_num_threads(threads)
     return threads
 

@@ -71,6 +71,6 @@ def render(gaussians: Gaussians, cameras: Cameras, background: Tensor | None = N
         if extra_features is not None:
             rgb = torch.cat([rgb, image[..., 4:]], dim=-1)
         outputs.append((rgb, alpha, depth, proj.means2d, proj.radii))
-    rgb, alpha, depth, means2d, radii = zip(*outputs)
-    return RenderOutput(torch.stack(rgb), torch.stack(alpha), torch.stack(depth), list(means2d),
-                        torch.stack(radii))
+    rgbs, alphas, depths, means2ds, radiis = zip(*outputs)
+    return RenderOutput(torch.stack(rgbs), torch.stack(alphas), torch.stack(depths), list(means2ds),
+                        torch.stack(radiis))
