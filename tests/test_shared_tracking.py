@@ -59,3 +59,48 @@ def test_another_folders_finished_jobs_are_taken_only_when_named(tmp_path):
         run_sweep(_cfg(tmp_path / "d", store, [f"reuse_from=[{tmp_path / 'nowhere'}]"]))
     with pytest.raises(ConfigError, match="reuse_from: expected a list of output folders"):
         run_sweep(_cfg(tmp_path / "d", store, ["reuse_from=3"]))
+
+
+def test_a_copy_that_fails_midway_leaves_no_rows_and_a_named_folder_must_be_an_output_folder(tmp_path, monkeypatch):
+    """reuse_finished without a sweep: every job folder is copied before any row is written, so a
+    copy that fails part way leaves this folder's records as they were."""
+    import shutil
+
+    import pandas as pd
+
+    from pipeline.experiment import reuse
+    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.layout import SweepFolder
+    source, here = tmp_path / "a", tmp_path / "b"
+    rows = []
+    for h in ("h1", "h2"):
+        job = SweepFolder(source).job(h)
+        job.artifacts.mkdir(parents=True)
+        job.result_file.write_text("{}")
+        (job.checkpoint_dir).mkdir()
+        (job.checkpoint_file).write_text("resume state")
+        rows.append({"config_hash": h, "kind": "final", "status": "FINISHED", "code_version": "abc", "psnr": 20.0})
+    pd.DataFrame(rows).to_parquet(SweepFolder(source).records_file, index=False)
+    jobs = [type("J", (), {"config_hash": h})() for h in ("h1", "h2", "h3")]
+    copied = []
+    real = shutil.copytree
+
+    def copy_then_fail(src, dst, *args, **kw):
+        if args:  # copytree's own recursion into a subfolder
+            return real(src, dst, *args, **kw)
+        if copied:
+            raise OSError("disk full")
+        copied.append(src)
+        return real(src, dst, **kw)
+    monkeypatch.setattr(reuse.shutil, "copytree", copy_then_fail)
+    records = RecordsFile(here)
+    with pytest.raises(OSError, match="disk full"):
+        reuse.reuse_finished(jobs, [source], here, records)
+    assert RecordsFile(here).frame.empty and records.frame.empty
+    monkeypatch.setattr(reuse.shutil, "copytree", real)
+    (taken,) = reuse.reuse_finished(jobs, [source], here, records)
+    assert taken.hashes == ["h1", "h2"] and sorted(RecordsFile(here).finished_hashes()) == ["h1", "h2"]
+    assert not SweepFolder(here).job("h1").checkpoint_dir.exists()  # the resume state stays behind
+    assert reuse.reuse_finished(jobs, [source], here, records) == []  # finished here now: nothing to take
+    with pytest.raises(ConfigError, match="this sweep's own output_dir"):
+        reuse.reuse_finished(jobs, [here], here, records)
