@@ -476,3 +476,53 @@ def test_a_request_no_node_can_hold_is_refused_instead_of_waiting_forever(ray_se
     assert infeasible(small, nodes, 1) == []
     assert infeasible(small, nodes, 2) == ["executor.gpus_per_job=2: no node of the cluster has that many GPUs "
                                            "(the largest has 1); Ray would wait for one forever"]
+
+
+class InlineExecutor:
+    """A made-up executor for the registration test: its section and this class are all it takes."""
+
+    slots = 1
+    runs_here = True
+
+    def __init__(self, workers: int):
+        self.workers, self.running = workers, []
+
+    @classmethod
+    def from_config(cls, cfg: dict, output_dir):
+        return cls(cfg.get("workers", 1))
+
+
+def test_a_new_executor_is_its_section_and_its_class(tmp_path):
+    """Registered by kind with its class: the schema checks and documents its keys, make_executor
+    builds it, plan=true's estimate asks it how many jobs run at once."""
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from pipeline.bounds import INT, STR, bounded
+    from pipeline.experiment.executors import config
+    from pipeline.experiment.schema import config_problems, schema_rows
+
+    @config.executor("inline", "tests.test_executors:InlineExecutor")
+    @dataclass(frozen=True)
+    class InlineSection:
+        target: ClassVar[str]
+        kind: str = bounded("inline", STR, choices=("inline",))
+        workers: int = bounded(1, INT, ge=1)
+
+        @staticmethod
+        def slots(cfg: dict, threads: list[int]) -> int:
+            return int(cfg.get("workers", 1))
+    try:
+        built = make_executor({"kind": "inline", "workers": 3}, tmp_path)
+        assert type(built).__name__ == "InlineExecutor" and built.workers == 3  # (imported by its target)
+        assert config.planned_slots({"kind": "inline", "workers": 3}, [1, 1]) == 3
+        problems = config_problems({"executor": {"kind": "inline", "workers": 0}})
+        assert any("executor.workers" in p for p in problems), problems
+        assert not any("executor.kind" in p for p in problems)
+        assert any("executor.(inline) workers" in str(row[0]) for row in schema_rows())
+        with pytest.raises(ValueError, match="registered twice"):
+            config.executor("inline", "x:Y")(InlineSection)
+    finally:
+        config.SECTIONS.pop("inline")
+    with pytest.raises(ValueError, match="must be one of local, ray, slurm"):
+        make_executor({"kind": "inline"}, tmp_path)

@@ -5,7 +5,6 @@ no Ray, no MLflow, no job folders.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from pipeline.active.episode import planned_schedule
 from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit, training_calls
 from pipeline.data.scene import traits_of
 from pipeline.experiment.data_changes import data_changes
+from pipeline.experiment.executors.config import planned_slots
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.schema import EPISODE_SETTINGS
 from pipeline.experiment.spec import Job
@@ -160,12 +160,8 @@ def plan_jobs(jobs: list[Job], output_dir: Path) -> list[PlannedJob]:
 
 
 def slots(executor: dict, jobs: list[Job]) -> int:
-    """Jobs that run at once: the local executor 1; Ray the CPUs it gets over the job threads."""
-    if executor.get("kind") != "ray" or not jobs:
-        return 1
-    cpus = executor.get("num_cpus") or os.cpu_count() or 1
-    threads = min((int(j.execution.threads) for j in jobs if j.execution is not None), default=1)
-    return max(1, int(cpus) // max(1, threads))
+    """Jobs that run at once, as the executor's section says (``executors.config``)."""
+    return planned_slots(executor, [int(j.execution.threads) for j in jobs if j.execution is not None])
 
 
 def format_duration(seconds: float) -> str:

@@ -22,6 +22,7 @@ from pipeline.bounds import (BOOL, FLOAT, INT, STR, Bound, bound_of, bounded, de
                              violations, warning_lines, warnings)
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.data.synthetic import GeneratedScene
+from pipeline.experiment.executors.config import SECTIONS
 from pipeline.fit.config import DensifyConfig, FitConfig
 
 JOB_KINDS = ("episode", "uncertainty")
@@ -55,35 +56,7 @@ class JobSection:
     device: str = bounded("cpu", STR, choices=DEVICES)
 
 
-@dataclass(frozen=True)
-class LocalExecutorSection:
-    kind: str = bounded("local", STR, choices=("local",))
-
-
-@dataclass(frozen=True)
-class RayExecutorSection:
-    kind: str = bounded("ray", STR, choices=("ray",))
-    address: str | None = bounded(None, STR, nullable=True)
-    num_cpus: int | None = bounded(None, INT, ge=1, nullable=True)
-    gpus_per_job: float = bounded(0, FLOAT, ge=0)
-    max_retries: int = bounded(2, INT, ge=0, le=100)
-
-
-@dataclass(frozen=True)
-class SlurmExecutorSection:
-    kind: str = bounded("slurm", STR, choices=("slurm",))
-    cluster: str | None = bounded(None, STR, choices=("slurm", "local"), nullable=True)
-    partition: str | None = bounded(None, STR, nullable=True)
-    account: str | None = bounded(None, STR, nullable=True)
-    timeout_min: int = bounded(240, INT, ge=1)
-    array_parallelism: int = bounded(64, INT, ge=1)
-    max_requeues: int = bounded(3, INT, ge=0, le=1000)
-    gpus_per_job: int = bounded(0, INT, ge=0)
-    mem_gb: float | None = bounded(None, FLOAT, gt=0, nullable=True)
-    signal_delay_s: int | None = bounded(None, INT, ge=0, nullable=True)
-
-
-EXECUTORS = {"local": LocalExecutorSection, "ray": RayExecutorSection, "slurm": SlurmExecutorSection}
+EXECUTORS = SECTIONS  # kind -> the ``executor`` section's dataclass, registered beside its class
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from pipeline.data.scene import Scene
 from pipeline.experiment.executors.base import OnDone, OnRound, scene_key
 from pipeline.experiment.executors.worker import run_here
@@ -14,6 +16,10 @@ class LocalExecutor:
 
     def __init__(self):
         self.running: list[Job] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
+
+    @classmethod
+    def from_config(cls, cfg: dict, output_dir: Path) -> "LocalExecutor":
+        return cls()
 
     def map(self, jobs: list[Job], scenes: dict[str, Scene], on_done: OnDone,
             on_round: OnRound | None = None) -> None:

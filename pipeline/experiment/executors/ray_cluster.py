@@ -186,6 +186,11 @@ class RayExecutor:
         self.running: list[Job] = []  # the jobs a stop signal interrupted (see SweepInterrupted)
         self.runs_here = not address  # a Ray this launch starts on this machine's cores
 
+    @classmethod
+    def from_config(cls, cfg: dict, output_dir: Path) -> "RayExecutor":
+        return cls(cfg.get("address"), cfg.get("num_cpus"), cfg.get("gpus_per_job", 0), cfg.get("max_retries", 2),
+                   Path(output_dir))
+
     def _start(self):
         """Ray, and whether this call started it (then ``map`` shuts it down again)."""
         import ray
