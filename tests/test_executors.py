@@ -53,7 +53,7 @@ def test_a_worker_under_other_code_or_packages_is_refused_and_not_retried(tmp_pa
     assert len(starts) == 2 and all(s["pid"] == os.getpid() for s in starts)
 
 
-def test_other_packages_name_what_differs_and_a_shared_environment_is_not_told_to_install(tmp_path):
+def test_other_packages_name_what_differs_and_a_shared_environment_is_not_told_to_install(tmp_path, monkeypatch):
     """A shared environment being installed into while a launch starts: the node runs from the
     driver's own environment folder, so 'install requirements.lock on every node' is the wrong advice."""
     import sys
@@ -73,6 +73,11 @@ def test_other_packages_name_what_differs_and_a_shared_environment_is_not_told_t
     assert driver_changed(here) == []  # the driver's packages as they were: nothing changed under it
     (line,) = driver_changed(shared)
     assert "changed since this launch began" in line and "numpy" in line
+    from pipeline.experiment.executors import worker
+    installed = dict(here.pins)
+    monkeypatch.setattr(worker, "installed_pins", lambda: {**installed, "numpy": "0.0.2"})  # an install under way
+    (line,) = driver_changed(here)  # read now, not the process's cached digest
+    assert f"numpy 0.0.2 (driver {here.pins['numpy']})" in line
 
 
 @pytest.mark.slow

@@ -155,12 +155,16 @@ def numeric_paths() -> str:
             f"numba {numba_cpu}")
 
 
+def packages_digest(pins: dict[str, str]) -> str:
+    """The short digest of installed packages (``installed_pins``), local version labels ignored."""
+    text = "\n".join(f"{name}=={version.split('+', 1)[0]}" for name, version in sorted(pins.items()))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
 @lru_cache(maxsize=None)
 def environment() -> Environment:
     installed = installed_pins()
-    text = "\n".join(f"{name}=={version.split('+', 1)[0]}" for name, version in sorted(installed.items()))
     locked = None
     if LOCK_FILE.exists():
         locked = not lock_differences(installed, read_lock())
-    return Environment(hashlib.sha256(text.encode()).hexdigest()[:12], locked, cpu_model(),
-                       platform.python_version(), numeric_paths())
+    return Environment(packages_digest(installed), locked, cpu_model(), platform.python_version(), numeric_paths())

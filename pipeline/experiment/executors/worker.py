@@ -22,7 +22,7 @@ from pipeline.data.scene import Scene
 from pipeline.experiment.job import Report, run_with_retries
 from pipeline.experiment.layout import JobFolder
 from pipeline.experiment.outcome import JobOutcome
-from pipeline.experiment.provenance import code_version, environment, installed_pins
+from pipeline.experiment.provenance import code_version, environment, installed_pins, packages_digest
 from pipeline.experiment.spec import Job
 from pipeline.splat.compiled import compile_seconds
 
@@ -39,7 +39,10 @@ class DriverIdentity:
 
     @classmethod
     def here(cls) -> "DriverIdentity":
-        return cls(code_version(), environment().packages, installed_pins(), sys.prefix)
+        """This process's identity, its packages read now (not ``environment()``'s cached digest:
+        an install into a shared environment must show)."""
+        pins = installed_pins()
+        return cls(code_version(), packages_digest(pins), pins, sys.prefix)
 
     def to_dict(self) -> dict:
         return asdict(self)
