@@ -178,6 +178,9 @@ def test_the_kept_curves_are_the_ones_the_ause_integrates():
         top = max(by.max(), oracle.max())
         assert np.trapezoid((by - oracle) / top, MAX_FRACTIONS) == pytest.approx(getattr(record, f"ause_{error}_max"))
         assert by[0] == pytest.approx(curves[error]["random"][0])  # nothing removed: every pixel
+    from pipeline.eval.model_uncertainty import final_model_uncertainty
+    both = final_model_uncertainty(truth, render, noisy)  # what a job measures, the pixels read once
+    assert both == (record, sparsification_curves(truth, render, noisy))
     exact = sparsification_curves(truth, render, (render - truth) ** 2)
     assert exact["fractions"] == list(CURVE_FRACTIONS) and len(exact["fractions"]) == 20
     assert exact["rmse"]["by_uncertainty"] == pytest.approx(exact["rmse"]["oracle"], rel=1e-12)

@@ -36,7 +36,7 @@ from pipeline.data.synthetic import depth_truth
 from pipeline.eval.camera_path import picked_path
 from pipeline.eval.depth import depth_errors, sparse_depth_errors
 from pipeline.data.colmap import observed_points
-from pipeline.eval.model_uncertainty import pixel_uncertainty, sparsification_curves
+from pipeline.eval.model_uncertainty import final_model_uncertainty
 from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
 from pipeline.splat.render import RenderOutput
@@ -210,8 +210,8 @@ def measure_final_model(result: EpisodeResult, scene: Scene, rendered: RenderOut
     truth = views.images.stack(ids).to(preds)
     background = scene.background.to(result.gaussians.means)
     variance = channel_variance_maps(result.gaussians, taken, views.cameras[ids], background).to(preds)
-    result.final.uncertainty = pixel_uncertainty(truth, preds, variance).to_dict()
-    result.final.uncertainty_curves = sparsification_curves(truth, preds, variance)
+    record, curves = final_model_uncertainty(truth, preds, variance)
+    result.final.uncertainty, result.final.uncertainty_curves = record.to_dict(), curves
     # the shown views are the first test views: their depth is rendered already
     result.final.depth = final_depth_errors(scene, views, ids, rendered.depth[:shown], rendered.alpha[:shown],
                                             variance.sum(-1), generated)
