@@ -88,8 +88,6 @@ def matched(true_names: list[str], true: Cameras, est_names: list[str], estimate
     return true[list(ti)], estimated[list(ei)], [true_names[i] for i in ti]
 
 
-
-
 def relative_rotation_errors(true: Cameras, estimated: Cameras) -> Tensor:
     """Per camera [C], degrees: the median over the other cameras j of the angle between the true
     relative rotation R_i R_j^T and the estimated one. No alignment enters it: a global rotation of
@@ -103,5 +101,5 @@ def relative_rotation_errors(true: Cameras, estimated: Cameras) -> Tensor:
     rel_est = r_est[:, None] @ r_est.transpose(1, 2)[None]
     cos = ((rel_true.transpose(-1, -2) @ rel_est).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
     angle = torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))        # [C, C], zero on the diagonal
-    off_diagonal = ~torch.eye(len(true), dtype=torch.bool)
-    return torch.stack([angle[i][off_diagonal[i]].median() for i in range(len(true))])
+    others = angle[~torch.eye(len(true), dtype=torch.bool)].reshape(len(true), len(true) - 1)  # [C, C-1]
+    return others.median(dim=1).values
