@@ -375,13 +375,13 @@ def make_figures(frame: pd.DataFrame, sweep_dir: Path | None, out: Path,
     if not curves.empty:
         made["sparsification.png"] = figures.sparsification(
             curves, finished(frame, "ause", "uncertainty"), fig_dir / "sparsification.png")
-    pixel = pixel_curves(sweep_dir, finished(frame, "final", "episode"))
+    final = finished(frame, "final", "episode")
+    pixel = pixel_curves(sweep_dir, final)
     if not pixel.empty:
         made["pixel_sparsification.png"] = figures.pixel_sparsification(
-            relative(pixel), pixel_ause(finished(frame, "final", "episode")), fig_dir / "pixel_sparsification.png")
+            relative(pixel), pixel_ause(final), fig_dir / "pixel_sparsification.png")
     if not images:
         return made
-    final = finished(frame, "final", "episode")
     for k, scene in enumerate(dict.fromkeys(final["scene"])):  # one grid per scene (paper Fig. 5)
         renders = grid_images(sweep_dir, final, "renders", scene, reference)
         if any(renders.values()):
