@@ -166,10 +166,15 @@ def changed_values(before: dict | None, now: dict | None, tolerance: float = 1e-
     ``tolerance``); '' when none did or nothing was recorded."""
     if not before or not now:
         return ""
-    moved = [f"{k} {before[k]:.6g} -> {now.get(k)}" for k, v in before.items()
-             if isinstance(v, (int, float)) and not (isinstance(now.get(k), (int, float))
-                                                     and abs(now[k] - v) <= tolerance * max(1.0, abs(v)))
-             and not (v != v and now.get(k) != now.get(k))]  # NaN recorded, NaN again: unchanged
+    moved = []
+    for key, old in before.items():
+        if not isinstance(old, (int, float)):
+            continue
+        new = now.get(key)
+        if isinstance(new, (int, float)) and (abs(new - old) <= tolerance * max(1.0, abs(old))
+                                              or (old != old and new != new)):  # NaN recorded, NaN again
+            continue
+        moved.append(f"{key} {old:.6g} -> {new}")
     return ", ".join(moved[:3])
 
 
