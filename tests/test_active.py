@@ -277,7 +277,7 @@ def test_the_scene_extent_is_that_of_the_initial_and_pool_cameras_for_the_whole_
 def test_a_zero_scene_extent_is_refused_with_the_scene_named():
     import torch
     from types import SimpleNamespace
-    from pipeline.active.episode import episode_extent
+    from pipeline.active.plan import episode_extent
     from pipeline.cameras import Cameras
     from pipeline.fit.trainer import scene_extent
     one = Cameras(torch.eye(4)[None].repeat(3, 1, 1), torch.eye(3)[None].repeat(3, 1, 1), 8, 8)

@@ -468,12 +468,12 @@ def test_round_progress_reaches_the_driver_and_mlflow_while_jobs_run(executor, b
 def test_a_degraded_final_model_is_flagged_in_records_mlflow_and_output(base, capsys, monkeypatch):
     """A schedule that evaluates right after the last opacity reset (as the old CPU preset did on
     real scenes) must not pass silently into a table."""
-    from pipeline.active import episode as episode_module
+    from pipeline.active import plan as plan_module
     from pipeline.active.schedule import Schedule
-    real = episode_module.views_schedule
-    monkeypatch.setattr(episode_module, "views_schedule", lambda views, cfg: Schedule(
-        real(views, cfg).round_views, real(views, cfg).round_iterations, 0,
-        sum(real(views, cfg).round_iterations)))
+    real = plan_module.views_schedule
+    monkeypatch.setattr(plan_module, "views_schedule", lambda initial, budget, cfg: Schedule(
+        real(initial, budget, cfg).round_views, real(initial, budget, cfg).round_iterations, 0,
+        sum(real(initial, budget, cfg).round_iterations)))
     out = base / "degraded"
     summary = run_sweep(composed(["experiment=debug", *TINY, "splat.iterations=null", "method=[coverage]",
                                   "executor=local", "tracking=mlflow", f"output_dir={out}"]))

@@ -110,13 +110,14 @@ def test_an_episode_whose_rounds_exceed_the_fit_ends_trained(scene_dir):
 def test_the_guard_flags_a_model_reset_just_before_evaluation(scene_dir, monkeypatch):
     """With a schedule that leaves one step after the last opacity reset, the final model is
     nearly transparent: the episode must say so rather than pass it on as a result."""
-    real = episode_module.views_schedule
+    from pipeline.active import plan as plan_module
+    real = plan_module.views_schedule
 
-    def no_final_phase(views, cfg):
-        s = real(views, cfg)
+    def no_final_phase(initial, budget, cfg):
+        s = real(initial, budget, cfg)
         return Schedule(s.round_views, s.round_iterations, 0, sum(s.round_iterations))
 
-    monkeypatch.setattr(episode_module, "views_schedule", no_final_phase)
+    monkeypatch.setattr(plan_module, "views_schedule", no_final_phase)
     cfg = over_budget_config()
     result = run_episode(load_scene(scene_dir, width=cfg.fit.image_width), cfg)
     assert result.final.final_phase_iterations == 1
@@ -143,7 +144,7 @@ def test_the_schedule_planned_from_the_format_is_the_one_the_read_scene_gives(wh
     scene's built protocol: the same for every protocol kind and explicit counts."""
     from tests.conftest import shared_scene
     from pipeline.active.config import cpu_episode
-    from pipeline.active.episode import episode_plan, planned_schedule
+    from pipeline.active.plan import EpisodeOutline, EpisodePlan
     from pipeline.data.readers import traits_of
     path = {"generated": scene_dir, "lego": None, "bonsai": None}[where]
     path = path or shared_scene(*(("blender", "lego") if where == "lego" else ("colmap", "bonsai")))
@@ -154,4 +155,6 @@ def test_the_schedule_planned_from_the_format_is_the_one_the_read_scene_gives(wh
             cfg = cpu_episode(protocol=protocol, post_selection=policy)
             if protocol.kind == "goal" and where == "generated":
                 continue  # the tiny generated scene's sector is checked by the protocol tests
-            assert planned_schedule(traits_of(scene.format), cfg) == episode_plan(scene, cfg)
+            plan = EpisodePlan.of(scene, cfg)
+            before = EpisodeOutline.before_reading(traits_of(scene.format), cfg)
+            assert (before.schedule, before.fit) == (plan.schedule, plan.fit)

@@ -18,25 +18,24 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from pipeline.acquisition import POSE_SCORING, SelectionContext, make_strategy, scores_any_pose
 from pipeline.acquisition.validation import RoundAsk, check_selection
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
-from pipeline.active.config import EpisodeConfig, round_seed
+from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
 from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
-from pipeline.active.schedule import Schedule, episode_schedule, scaled_fit
+from pipeline.active.plan import EpisodePlan
 from pipeline.cameras import Cameras
 from pipeline.splat.compiled import compile_seconds
-from pipeline.data.protocols import ProtocolViews, build_protocol, view_counts
+from pipeline.data.protocols import ProtocolViews
 from pipeline.data.images import read_mask
-from pipeline.data.sampling import reduce_pool, sample_probes, seeded_subset
-from pipeline.data.scene import Scene, SceneTraits
+from pipeline.data.sampling import reduce_pool, seeded_subset
+from pipeline.data.scene import Scene
 from pipeline.eval.metrics import LpipsMetric, evaluate_views
 from pipeline.fit.init import from_point_cloud, random_in_box
-from pipeline.fit.trainer import Trainer, scene_extent
+from pipeline.fit.trainer import Trainer
 from pipeline.memory import peak_rss_mb
 from pipeline.splat import Gaussians, ply
 from pipeline.splat.gaussians import num_sh_bases
@@ -61,12 +60,6 @@ def initial_gaussians(scene: Scene, cfg: EpisodeConfig) -> Gaussians:
     return random_in_box(fit.init_points, lo.float(), hi.float(), fit.sh_degree, cfg.seed, fit.init_opacity)
 
 
-def uniform_subset(ids: list[int], count: int | None) -> list[int]:
-    if count is None or count >= len(ids):
-        return list(ids)
-    return [ids[i] for i in np.linspace(0, len(ids) - 1, count).round().astype(int)]
-
-
 def with_sh_degree(g: Gaussians, degree: int) -> Gaussians:
     """``g`` with exactly the SH coefficients of ``degree``: extra ones dropped, missing ones zero."""
     if degree <= g.sh_degree:
@@ -75,53 +68,18 @@ def with_sh_degree(g: Gaussians, degree: int) -> Gaussians:
     return g.replace(shN=torch.cat([g.shN, pad], dim=1))
 
 
-def views_schedule(views: ProtocolViews, cfg: EpisodeConfig) -> Schedule:
-    return episode_schedule(len(views.initial_ids), views.budget, cfg.views_per_round,
-                            cfg.epochs_per_view, cfg.fit.iterations,
-                            reload=cfg.post_selection == "reload")
-
-
-def planned_schedule(traits: SceneTraits, cfg: EpisodeConfig) -> Schedule:
-    """The schedule of an episode of ``cfg`` on a scene with ``traits`` (its format's), known
-    before the scene is read: the protocol's view counts (``view_counts``, the numbers
-    ``build_protocol`` takes) through the schedule rule; ``episode_plan`` of a read scene is the same."""
-    initial, budget = view_counts(traits, cfg.protocol)
-    return episode_schedule(initial, budget, cfg.views_per_round, cfg.epochs_per_view, cfg.fit.iterations,
-                            reload=cfg.post_selection == "reload")
-
-
-def episode_extent(scene: Scene, views: ProtocolViews) -> float:
-    """3DGS's scene extent for the whole episode: from every camera the episode may train on (the
-    initial views and the candidate pool, all known before the first pick), as 3DGS and FisherRF
-    take it from all training cameras; the same for every policy and every round."""
-    ids = sorted(set(views.initial_ids) | set(views.pool_ids))
-    return scene_extent(scene.split(views.pool_split).cameras[ids],
-                        f"scene {scene.root} ({len(ids)} initial and pool cameras)")
-
-
-def probes_of_round(seed: int, round_index: int, views: ProtocolViews) -> list[int]:
-    """K probe ids for a round, redrawn every round independently of the selection history
-    (paper Sec. 5: a generator of its own, seeded by (seed, round)); benchmark definitions list them."""
-    gen = torch.Generator().manual_seed(round_seed(seed, round_index))
-    return sample_probes(views.probe_ids, views.probes, gen)
-
-
-def episode_plan(scene: Scene, cfg: EpisodeConfig) -> Schedule:
-    """The schedule an episode of ``cfg`` on ``scene`` follows, known before it runs."""
-    return views_schedule(build_protocol(scene, cfg.protocol), cfg)
-
-
 class Episode:
     """The mutable state of one episode between rounds (what a checkpoint holds)."""
 
     def __init__(self, scene: Scene, cfg: EpisodeConfig, device: str | torch.device | None = None,
-                 folder: Path | None = None):
+                 folder: Path | None = None, plan: EpisodePlan | None = None):
         self.scene, self.cfg, self.folder = scene, cfg, folder
+        self.plan = plan if plan is not None else EpisodePlan.of(scene, cfg)
         self.on_step = None  # hears each training step (run_episode's on_step)
         self.on_fisher = None  # hears (views done, views asked) of each Fisher pass of a selection
         self.device = torch.device(device or "cpu")
         self.background = scene.background.to(self.device)
-        self.views: ProtocolViews = build_protocol(scene, cfg.protocol)
+        self.views: ProtocolViews = self.plan.views
         self.pool = scene.split(self.views.pool_split)
         self.test = scene.split(self.views.test_split)
         if cfg.masks and scene.masks is None:
@@ -130,13 +88,12 @@ class Episode:
         if cfg.fit.image_width is not None and self.pool.cameras.width != cfg.fit.image_width:
             raise ValueError(f"scene {scene.root} was read at width {self.pool.cameras.width} but "
                              f"fit.image_width is {cfg.fit.image_width}")
-        self.schedule = views_schedule(self.views, cfg)
-        self.fit = scaled_fit(cfg.fit, self.schedule)
+        self.schedule, self.fit = self.plan.schedule, self.plan.fit
         self.strategy = make_strategy(cfg.strategy, **cfg.strategy_options)
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.curve_ids = uniform_subset(self.views.test_ids, cfg.curve_test_views)
+        self.curve_ids = list(self.plan.curve_ids)
         self.init = initial_gaussians(scene, cfg).to(self.device)
-        self.extent = episode_extent(scene, self.views)
+        self.extent = self.plan.extent
         self.taken = list(self.views.initial_ids)
         self.acquired = AcquiredViews(first_id=len(self.pool.cameras))  # views captured off the pool
         self.world, self.space = None, None
@@ -232,7 +189,7 @@ class Episode:
                            test_ssim_skimage=m["ssim_skimage"])
 
     def draw_probes(self, round_index: int) -> list[int]:
-        return probes_of_round(self.cfg.seed, round_index, self.views)
+        return self.plan.probes(self.cfg.seed, round_index)
 
     def goal_manifold(self) -> dict | None:
         """The protocol's target manifold (its up axis filled in), None when the goal is the scene."""
@@ -371,7 +328,7 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
                 progress: bool = False, device: str | torch.device | None = None,
                 on_selection: Callable[["Episode", RoundRecord], None] | None = None,
                 on_resume: Callable[[int], None] | None = None,
-                on_step: Callable[..., None] | None = None) -> EpisodeResult:
+                on_step: Callable[..., None] | None = None, plan: EpisodePlan | None = None) -> EpisodeResult:
     """Run (or resume) one episode. ``on_round`` sees each finished round's record (after it is
     checkpointed), including the final one; it may raise to stop the episode. ``device``: where
     the model and images live (default CPU); records are identical in form on every device.
@@ -379,10 +336,11 @@ def run_episode(scene: Scene, cfg: EpisodeConfig, checkpoint_dir: str | Path | N
     policy changes the model (it must not change the episode). ``on_resume(rounds)`` hears how many
     finished rounds a checkpoint restored. ``on_step(round, done, total, phase)`` hears every training
     step of a round (``phase`` "training"; ``round`` counts from 0; the final training is the last
-    round) and, with ``phase`` "fisher", every chunk of views of a selection's Fisher passes."""
+    round) and, with ``phase`` "fisher", every chunk of views of a selection's Fisher passes.
+    ``plan``: the episode's plan when the caller has made it (``EpisodePlan.of(scene, cfg)``)."""
     start = time.perf_counter()
     folder = Path(checkpoint_dir) if checkpoint_dir is not None else None
-    ep = Episode(scene, cfg, device, folder)
+    ep = Episode(scene, cfg, device, folder, plan)
     if on_step is not None:
         ep.on_step = lambda done, total, info: on_step(len(ep.records), done, total, "training")
         ep.on_fisher = lambda done, total: on_step(len(ep.records), done, total, "fisher")

@@ -22,7 +22,8 @@ import torch
 from pipeline.acquisition import SelectionContext
 from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.active.config import EpisodeConfig
-from pipeline.active.episode import initial_gaussians, uniform_subset
+from pipeline.active.episode import initial_gaussians
+from pipeline.active.plan import uniform_subset
 from pipeline.active.results import UncertaintyResult
 from pipeline.bounds import FLOAT, INT, bounded, require_bounds
 from pipeline.cameras import Cameras

@@ -20,8 +20,7 @@ from typing import Callable
 import torch
 
 from pipeline.active import run_episode
-from pipeline.active.episode import uniform_subset, views_schedule
-from pipeline.data.protocols import build_protocol
+from pipeline.active.plan import EpisodePlan
 from pipeline.active.uncertainty import run_uncertainty_experiment
 from pipeline.data.fingerprint import scene_fingerprint
 from pipeline.data.images import DataError
@@ -127,9 +126,8 @@ def uncertainty_row(truth: torch.Tensor, render: torch.Tensor, variance: torch.T
 def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None = None) -> dict:
     cfg = job.episode
     started = time.time()  # the MLflow run of the job starts here, not at its first round
-    views = build_protocol(scene, cfg.protocol)
-    rounds = len(views_schedule(views, cfg).round_views) + 1
-    curve_views = len(uniform_subset(views.test_ids, cfg.curve_test_views))
+    plan = EpisodePlan.of(scene, cfg)  # made once: the episode, its messages and result.json share it
+    rounds, curve_views = plan.evaluations, len(plan.curve_ids)
     pending_images: dict[int, dict[str, bytes]] = {}
 
     def on_selection(ep, rec):
@@ -164,7 +162,7 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
         if report is not None:
             report(step)
     result = run_episode(scene, cfg, JobFolder(folder).checkpoint_dir, on_round=on_round, on_selection=on_selection,
-                         device=job.execution.device, on_resume=on_resume, on_step=on_step)
+                         device=job.execution.device, on_resume=on_resume, on_step=on_step, plan=plan)
     if result.final.degraded:
         _log(folder, f"warning: final PSNR {result.final.curve_psnr_drop:.2f} dB below the last "
                      "round's on the same views (degraded)")
@@ -180,7 +178,7 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
                                                     "probes": result.probes}).encode(),
                  MODEL: ply.export_bytes(result.gaussians),  # the final model, INRIA 3DGS PLY
                  # the portable result (pipeline.interchange's schema): what gopre-report --results reads
-                 BENCHMARK_RESULT: json.dumps(result_document(job, scene, cfg, result, every), indent=1).encode()}
+                 BENCHMARK_RESULT: json.dumps(result_document(job, scene, plan, result, every), indent=1).encode()}
     for i, view in enumerate(shown):
         artifacts[f"renders/test_{view:04d}.png"] = png_bytes(torch.cat([truth[i], preds[i]], dim=1))
     # the final model's uncertainty against its error on the same views (MLflow artifacts, and the

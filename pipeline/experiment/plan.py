@@ -11,8 +11,8 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.active.config import EpisodeConfig
-from pipeline.active.episode import planned_schedule
-from pipeline.active.schedule import Schedule, events_before_evaluations, scaled_fit, training_calls
+from pipeline.active.plan import EpisodeOutline
+from pipeline.active.schedule import Schedule, events_before_evaluations, training_calls
 from pipeline.data.scene import traits_of
 from pipeline.experiment.data_changes import data_changes
 from pipeline.experiment.executors.config import planned_slots
@@ -105,14 +105,13 @@ def density_line(run: FitConfig, schedule: Schedule, reload: bool) -> str:
     return f"  density control: {', '.join(parts)}"
 
 
-def schedule_lines(job: Job, schedule: Schedule) -> list[str]:
+def schedule_lines(job: Job, outline: EpisodeOutline) -> list[str]:
     """An episode's schedule in words, then each recipe value the schedule's rescaling changes
     (as written -> as run)."""
     cfg = job.episode
     reload = cfg.post_selection == "reload"
+    schedule, written, run = outline.schedule, cfg.fit, outline.fit
     views = schedule.round_views
-    written = cfg.fit
-    run = scaled_fit(written, schedule)
     head = f"{len(views)} rounds ({views[0]} to {views[-1]} views, {cfg.views_per_round} picked a round)"
     lines = [f"  {head}: the rounds train {', '.join(map(str, schedule.round_iterations))} steps"
              f"{' (each from scratch: post_selection=reload)' if reload else ''}, evaluating at step "
@@ -140,7 +139,7 @@ def schedule_text(jobs: list[Job]) -> str:
     groups: dict[str, list[str]] = {}
     for job in jobs:
         if job.kind == "episode":
-            text = "\n".join(schedule_lines(job, planned_schedule(traits_of(job.format), job.episode)))
+            text = "\n".join(schedule_lines(job, EpisodeOutline.before_reading(traits_of(job.format), job.episode)))
             groups.setdefault(text, []).append(f"{job.method} on {job.scene}")
     out = []
     for text, users in groups.items():

@@ -13,7 +13,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from pipeline.data.load import load_scene
-from pipeline.data.protocols import build_protocol
+from pipeline.active.plan import EpisodePlan
 from pipeline.data.scene import Scene
 from pipeline.data.synthetic import at_fraction, generate
 from pipeline.experiment.build import ConfigError
@@ -76,23 +76,34 @@ def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
     return scenes, errors
 
 
+def plan_key(job: Job) -> str:
+    """What an episode's plan can fail on: the scene and the episode settings, not the strategy or the
+    seed (the episode's, and the fit's copy of it)."""
+    settings = {k: v for k, v in job.episode.to_dict().items() if k not in ("strategy", "strategy_options", "seed")}
+    settings["fit"] = {k: v for k, v in settings["fit"].items() if k != "seed"}
+    return json.dumps([scene_key(job), settings], sort_keys=True, default=str)
+
+
 def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = True) -> list[str]:
     """One error per (scene, protocol) that does not fit the scene (budget, initial views, an
-    empty sector ...), found by building the protocol's views before any job starts; with
-    ``decode``, one per image those views use that cannot be decoded (a zero-byte file would
-    otherwise fail the job that happens to pick it, mid-sweep)."""
-    errors, built, too_many = [], {}, set()
+    empty sector, no extent ...), found by making each distinct episode plan (``EpisodePlan``, what
+    the job makes first) before any job starts; with ``decode``, one per image those views use that
+    cannot be decoded (a zero-byte file would otherwise fail the job that happens to pick it, mid-sweep)."""
+    errors, built, too_many, said = [], {}, set(), set()
     used: dict[tuple[str, str], set[int]] = {}
     for job in jobs:
         if job.kind != "episode" or scene_key(job) not in scenes:
             continue
-        key = (scene_key(job), json.dumps(job.protocol, sort_keys=True))
-        if key not in built:  # each (scene, protocol) built once
+        key = plan_key(job)
+        if key not in built:  # each distinct plan made once
             try:
-                views = build_protocol(scenes[scene_key(job)], job.episode.protocol)
+                views = EpisodePlan.of(scenes[scene_key(job)], job.episode).views
             except ValueError as err:
                 where = f" ({job.setting})" if job.setting else ""
-                errors.append(f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}")
+                line = f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}"
+                if line not in said:  # plans that differ beyond the protocol fail alike: one line
+                    errors.append(line)
+                    said.add(line)
                 views = None
             else:
                 used.setdefault((scene_key(job), views.pool_split), set()).update(

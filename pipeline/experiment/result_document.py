@@ -11,9 +11,9 @@ import numpy as np
 import torch
 
 from pipeline.active.config import EpisodeConfig
-from pipeline.active.episode import probes_of_round, views_schedule
+from pipeline.active.plan import EpisodePlan
 from pipeline.active.results import EpisodeResult
-from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.protocols import ProtocolViews
 from pipeline.data.scene import Scene
 from pipeline.experiment.spec import Job
 from pipeline.interchange.documents import BENCHMARK_SCHEMA, RESULT_SCHEMA, SCHEMA_VERSION
@@ -50,10 +50,10 @@ def _relative(path, root) -> str:
 def benchmark_entry(job: Job, scene: Scene, cfg: EpisodeConfig) -> dict:
     """One (scene, seed) of a preset: the views, and per round the views trained on, the picks it
     asks for and the probe ids drawn for it (seeded by (seed, round), as every episode draws them)."""
-    views = build_protocol(scene, cfg.protocol)
-    schedule = views_schedule(views, cfg)
-    rounds = [{"round": k, "num_views": int(n), "picks": int(min(cfg.views_per_round, views.budget - n)),
-               "probes": probes_of_round(cfg.seed, k, views)} for k, n in enumerate(schedule.round_views)]
+    plan = EpisodePlan.of(scene, cfg)
+    views = plan.views
+    rounds = [{"round": k, "num_views": int(n), "picks": plan.picks(k, cfg.views_per_round),
+               "probes": plan.probes(cfg.seed, k)} for k, n in enumerate(plan.schedule.round_views)]
     manifold = cfg.protocol.manifold if cfg.protocol.kind == "goal" else cfg.protocol.probe_manifold
     return {"benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width, job.data_identity or ""),
             "goal_manifold": None if manifold is None else {"up": list(views.up), **manifold},
@@ -66,11 +66,11 @@ def benchmark_document(preset: str, entries: list[dict], code_version: str, comm
             "code_version": code_version, "entries": entries}
 
 
-def result_document(job: Job, scene: Scene, cfg: EpisodeConfig, result: EpisodeResult,
+def result_document(job: Job, scene: Scene, plan: EpisodePlan, result: EpisodeResult,
                     renders: torch.Tensor) -> dict:
-    """The episode as ``result.json``; ``renders`` [T, H, W, 3] are the final model's renders of
-    every test view, in ``result.test_ids`` order."""
-    views = build_protocol(scene, cfg.protocol)
+    """The episode as ``result.json``; ``plan`` the one the episode ran; ``renders`` [T, H, W, 3] are
+    the final model's renders of every test view, in ``result.test_ids`` order."""
+    views = plan.views
     final = result.final
     pixels = renders.detach().cpu().numpy().astype(np.float64)
     per_image = [{"test_id": int(view), "psnr": float(final.per_view_psnr[k]),
@@ -83,7 +83,7 @@ def result_document(job: Job, scene: Scene, cfg: EpisodeConfig, result: EpisodeR
     return {"schema": RESULT_SCHEMA, "schema_version": SCHEMA_VERSION,
             "method": {"name": job.method, "strategy": job.strategy, "options": dict(job.options),
                        "plugin": job.plugin},
-            "benchmark": benchmark_key(job), "views": views_block(scene, views, cfg.fit.image_width, job.data_identity or ""),
+            "benchmark": benchmark_key(job), "views": views_block(scene, views, job.episode.fit.image_width, job.data_identity or ""),
             "rounds": rounds,
             "final": {"num_views": result.rounds[-1].num_views, "psnr": final.psnr, "ssim": final.ssim,
                       "lpips": final.lpips, "per_image": per_image},

@@ -18,8 +18,9 @@ from pathlib import Path
 import torch
 
 from pipeline.active.config import EpisodeConfig
+from pipeline.active.plan import EpisodePlan
 from pipeline.cameras import Cameras
-from pipeline.data.protocols import ProtocolViews, build_protocol
+from pipeline.data.protocols import ProtocolViews
 from pipeline.data.scene import Scene, Split
 from pipeline.experiment.export import from_checkpoint
 from pipeline.experiment.layout import JobFolder, SweepFolder
@@ -76,7 +77,7 @@ class EpisodeRun:
     job: Job
     cfg: EpisodeConfig
     scene: Scene
-    views: ProtocolViews
+    plan: EpisodePlan            # the job's plan, made as the job made it
     initial: list[int]
     selected: list[int]
     rounds: list[dict]           # the selection rounds' records (the final evaluation excluded)
@@ -84,6 +85,10 @@ class EpisodeRun:
     final_psnr: float | None     # None while the job runs
     round_models: dict[int, Path] = field(default_factory=dict)
     captured: Split | None = None  # views captured off the pool (world != dataset): ids after the pool's
+
+    @property
+    def views(self) -> ProtocolViews:
+        return self.plan.views
 
     @property
     def pool(self) -> Split:
@@ -210,9 +215,9 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
         captured = captured_split(torch.load(checkpoint, weights_only=False, map_location="cpu"))
     cfg = job.episode
     scene = scene_of(job, result, scene, data_root)
-    views = build_protocol(scene, cfg.protocol)
+    plan = EpisodePlan.of(scene, cfg)
     kept = {i: layout.round_model(i) for i in range(len(records))}
-    return EpisodeRun(folder, job, cfg, scene, views, list(initial), list(selected), list(records),
+    return EpisodeRun(folder, job, cfg, scene, plan, list(initial), list(selected), list(records),
                       model, final_psnr, {i: p for i, p in kept.items() if p.exists()}, captured)
 
 
