@@ -30,6 +30,16 @@ from pipeline.splat import Gaussians
 METRICS_VERSION = 2
 
 
+def recorded(column: str | None = None, *, metric: str | None = None, tag: str | None = None,
+             picks_only: bool = False) -> dict:
+    """A field's metadata when it is a column of the sweep's records (``pipeline.experiment.record_columns``
+    derives every column list from it): ``column`` its name there (default the field's); ``metric``: MLflow
+    logs it as that metric (a round's at step = views trained on, the final model's at step 0) and the
+    read-back takes it from there; ``tag``: as that MLflow tag; ``picks_only``: only a round that picked
+    has it (the final row holds its mean over the picks). A new recorded quantity is one field."""
+    return {"recorded": {"column": column, "metric": metric, "tag": tag, "picks_only": picks_only}}
+
+
 def _check_keys(cls, data: dict) -> None:
     unknown = set(data) - {f.name for f in fields(cls)}
     if unknown:
@@ -41,27 +51,29 @@ class RoundRecord:
     """The state after training on ``num_views`` views, and the selection made from it."""
 
     round: int
-    num_views: int                 # views trained on when evaluated (the curve's x)
-    iteration: int                 # trainer step at evaluation
-    test_psnr: float               # on the curve's test views
-    test_ssim: float | None        # 3DGS's SSIM (None in a version-1 record)
-    num_gaussians: int
+    num_views: int = field(metadata=recorded())  # views trained on when evaluated (the curve's x)
+    iteration: int = field(metadata=recorded())  # trainer step at evaluation
+    test_psnr: float = field(metadata=recorded("psnr", metric="test_psnr"))  # on the curve's test views
+    test_ssim: float | None = field(metadata=recorded("ssim", metric="test_ssim"))  # 3DGS's (None: version 1)
+    num_gaussians: int = field(metadata=recorded(metric="num_gaussians"))
     train_seconds: float           # training since the previous record
     selected: list[int] = field(default_factory=list)  # pool ids picked after evaluation
     probes: list[int] = field(default_factory=list)    # probe ids drawn for this round
     scores: dict[int, float] = field(default_factory=dict)  # every candidate's score
     candidates: int = 0
-    per_candidate_ms: float = 0.0
-    selection_seconds: float = 0.0
+    per_candidate_ms: float = field(default=0.0, metadata=recorded(metric="per_candidate_ms", picks_only=True))
+    selection_seconds: float = field(default=0.0, metadata=recorded(metric="selection_seconds", picks_only=True))
     fisher_seconds: float = 0.0
-    peak_rss_mb: float = 0.0
-    test_ssim_skimage: float | None = None  # scikit-image's SSIM of the same views
+    peak_rss_mb: float = field(default=0.0, metadata=recorded())
+    # scikit-image's SSIM of the same views
+    test_ssim_skimage: float | None = field(default=None, metadata=recorded("ssim_skimage", metric="test_ssim_skimage"))
     # the selection's CPU time (every thread of the process): unlike the wall time it does not grow
     # when other jobs share the cores, so per-round costs of concurrent jobs stay comparable
-    selection_cpu_seconds: float | None = None
+    selection_cpu_seconds: float | None = field(default=None, metadata=recorded(metric="selection_cpu_seconds",
+                                                                                picks_only=True))
     # numba's one-time kernel compilation during this round's selection, taken out of
     # selection_seconds, selection_cpu_seconds and per_candidate_ms (a fresh machine's first rounds)
-    compile_seconds: float = 0.0
+    compile_seconds: float = field(default=0.0, metadata=recorded())
     # world != dataset (views taken beyond the pool): the captured pose of each selected view (azimuth_deg,
     # elevation_deg, radius) and the search's account (score, best_start_score, best_pool_score,
     # evaluations, seconds, taken: "search" | "pool", evaluated: [[az, el, r, score], ...])
@@ -82,29 +94,32 @@ class FinalMetrics:
     """The final model's metrics on every test view of the protocol (means, then per view), its
     size and training, and the degradation flag (see ``pipeline.active.episode``)."""
 
-    psnr: float
-    ssim: float | None                       # 3DGS's SSIM (None: a version-1 record not filled)
-    ssim_skimage: float | None               # scikit-image's SSIM
-    lpips: float | None                      # None when unavailable or disabled
-    lpips_status: str
-    test_views: int
+    psnr: float = field(metadata=recorded(metric="final_psnr"))
+    # 3DGS's SSIM (None: a version-1 record not filled)
+    ssim: float | None = field(metadata=recorded(metric="final_ssim"))
+    ssim_skimage: float | None = field(metadata=recorded(metric="final_ssim_skimage"))  # scikit-image's SSIM
+    lpips: float | None = field(metadata=recorded(metric="final_lpips"))  # None when unavailable or disabled
+    lpips_status: str = field(metadata=recorded(tag="lpips_status"))  # why LPIPS is (un)available
+    test_views: int = field(metadata=recorded())
     per_view_psnr: list[float]
     per_view_ssim: list[float] | None
     per_view_ssim_skimage: list[float] | None
-    num_gaussians: int
+    num_gaussians: int = field(metadata=recorded())
     iterations: int = 0
     final_phase_iterations: int = 0
     schedule: dict = field(default_factory=dict)
-    curve_psnr_drop: float = 0.0
-    degraded: bool = False
-    nonfinite_steps: int = 0
-    metrics_version: int = METRICS_VERSION
-    ssim_source: str = "episode"             # or "model.ply": filled in afterwards from the final model
+    curve_psnr_drop: float = field(default=0.0, metadata=recorded(metric="curve_psnr_drop"))
+    degraded: bool = field(default=False, metadata=recorded(tag="degraded"))
+    nonfinite_steps: int = field(default=0, metadata=recorded(metric="nonfinite_steps"))
+    # what ``ssim`` means (the module's text); the tag the read-back needs before any SSIM
+    metrics_version: int = field(default=METRICS_VERSION, metadata=recorded(tag="metrics_version"))
+    # or "model.ply": filled in afterwards from the final model
+    ssim_source: str = field(default="episode", metadata=recorded())
     # the final model's pixel-level uncertainty on the job's rendered test views
     # (``pipeline.eval.model_uncertainty``; None: not measured, e.g. a job rendering no view)
     uncertainty: dict | None = None
     # the path through the picked cameras in pick order, over the pool's diameter (eval.camera_path)
-    path_length: float | None = None
+    path_length: float | None = field(default=None, metadata=recorded(metric="path_length"))
     # depth error on the rendered test views where the truth is known (the generated scene; eval.depth)
     depth: dict | None = None
     # the pixel-level sparsification curves behind ``uncertainty``'s AUSE, unnormalised

@@ -28,6 +28,8 @@ import pandas as pd
 
 from pipeline.active.results import EpisodeResult, FinalMetrics, UncertaintyResult
 from pipeline.experiment.outcome import JobOutcome
+from pipeline.experiment.record_columns import (FINAL_METRICS, FINAL_TAGS, PICK_COLUMNS, ROUND_METRICS,
+                                                final_values, mean_present, pick_means, round_values)
 from pipeline.experiment.spec import Job
 from pipeline.interchange.layout import RECORDS  # the one spelling of the records file
 
@@ -55,24 +57,14 @@ def plugin_columns(job: Job) -> dict:
 
 
 def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dict]:
+    """A round row per round, then the final row: the records' columns of the typed records
+    (``record_columns``), the picks as JSON, a search's account off the pool."""
     rounds = episode.rounds
-    rows = [{**base, "kind": "round", "num_views": r.num_views, "iteration": r.iteration,
-             "psnr": r.test_psnr, "ssim": r.test_ssim, "ssim_skimage": r.test_ssim_skimage,
-             "num_gaussians": r.num_gaussians, "per_candidate_ms": r.per_candidate_ms or None,
-             "selection_seconds": r.selection_seconds or None,
-             "selection_cpu_seconds": r.selection_cpu_seconds or None, "peak_rss_mb": r.peak_rss_mb,
-             "compile_seconds": r.compile_seconds,
-             "selected": json.dumps(r.selected),
-             **({"poses": json.dumps(r.poses), "search_taken": r.search["taken"],
-                 "search_score": r.search["score"], "search_best_start_score": r.search["best_start_score"],
-                 "search_best_pool_score": r.search["best_pool_score"]} if r.search else {})}
+    rows = [{**base, "kind": "round", **round_values(r), "selected": json.dumps(r.selected),
+             **({"poses": json.dumps(r.poses), **search_columns(r.search)} if r.search else {})}
             for r in rounds]
-    picks = [r for r in rounds if r.selected]
     rows.append({**base, "kind": "final", "num_views": rounds[-1].num_views if rounds else None,
-                 **final_columns(episode.final), "wall_seconds": seconds,
-                 "per_candidate_ms": float(np.mean([r.per_candidate_ms for r in picks])) if picks else None,
-                 "selection_seconds": float(np.mean([r.selection_seconds for r in picks])) if picks else None,
-                 "selection_cpu_seconds": _mean_present([r.selection_cpu_seconds for r in picks]),
+                 **final_columns(episode.final), "wall_seconds": seconds, **pick_means(rounds),
                  "compile_seconds": float(sum(r.compile_seconds for r in rounds)),
                  "peak_rss_mb": max((r.peak_rss_mb for r in rounds), default=None),
                  "selected": json.dumps(episode.selected), "initial": json.dumps(episode.initial),
@@ -80,21 +72,14 @@ def episode_rows(base: dict, episode: EpisodeResult, seconds: float) -> list[dic
     return rows
 
 
-def _mean_present(values: list) -> float | None:
-    """The mean of the values that were measured (None: none was, e.g. a record older than the field)."""
-    present = [v for v in values if v is not None]
-    return float(np.mean(present)) if present else None
+def search_columns(search: dict) -> dict:
+    """A round off the pool: which pick it took and the scores the search compared."""
+    return {"search_taken": search["taken"], **{f"search_{k}": search[k] for k in SEARCH_SCORES}}
 
 
 def final_columns(final: FinalMetrics) -> dict:
-    """The final row's metric columns (one place: adding a final metric adds it here)."""
-    return {"psnr": final.psnr, "ssim": final.ssim, "ssim_skimage": final.ssim_skimage,
-            "lpips": final.lpips, "lpips_status": final.lpips_status, "test_views": final.test_views,
-            "num_gaussians": final.num_gaussians, "degraded": bool(final.degraded),
-            "curve_psnr_drop": final.curve_psnr_drop, "nonfinite_steps": int(final.nonfinite_steps),
-            "metrics_version": final.metrics_version, "ssim_source": final.ssim_source,
-            "path_length": final.path_length, **uncertainty_columns(final.uncertainty),
-            **depth_columns(final.depth)}
+    """The final row's metric columns: the recorded fields, then the uncertainty and depth families."""
+    return {**final_values(final), **uncertainty_columns(final.uncertainty), **depth_columns(final.depth)}
 
 
 UNCERTAINTY_PREFIX = "unc_"  # the final model's pixel-level uncertainty metrics (eval.model_uncertainty)
@@ -237,27 +222,22 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
             "code_version": tags.get("code_version"), "data_fingerprint": tags.get("data_fingerprint"),
             "world": params.get("world.kind", "dataset"),
             "job_index": int(tags["job_index"]) if "job_index" in tags else None}
-    version = int(tags.get("metrics_version", 1))  # version 1: final_ssim was scikit-image's
-    ssim, ssim_skimage = ((metrics.get("final_ssim"), metrics.get("final_ssim_skimage")) if version >= 2
-                          else (None, metrics.get("final_ssim")))
-    final = {**base, "kind": "final", "psnr": metrics.get("final_psnr"), "ssim": ssim,
-             "ssim_skimage": ssim_skimage, "metrics_version": version,
-             "lpips": metrics.get("final_lpips"), "wall_seconds": metrics.get("wall_seconds"),
-             "lpips_status": tags.get("lpips_status"), "degraded": tags.get("degraded") == "true",
-             "curve_psnr_drop": metrics.get("curve_psnr_drop"),
-             "nonfinite_steps": metrics.get("nonfinite_steps"), "path_length": metrics.get("path_length"),
+    final = {**base, "kind": "final", **{c.column: metrics.get(c.metric) for c in FINAL_METRICS},
+             **{c.column: c.decode_tag(tags.get(c.tag)) for c in FINAL_TAGS},
+             "wall_seconds": metrics.get("wall_seconds"),
              **{k: v for k, v in metrics.items() if k.startswith(TRACKED_METRIC_PREFIXES)}}
-    history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)}
-               for key in ("test_psnr", "test_ssim", "test_ssim_skimage", "per_candidate_ms", "selection_seconds",
-                           "selection_cpu_seconds", *(SEARCH_METRICS if "world.kind" in params else ()))}
+    version = final["metrics_version"] = int(tags.get("metrics_version", 1))  # version 1: final_ssim was skimage's
+    if version < 2:
+        final["ssim"], final["ssim_skimage"] = None, metrics.get("final_ssim")
+    logged = [c.metric for c in ROUND_METRICS] + list(SEARCH_METRICS)
+    history = {key: {m.step: m.value for m in client.get_metric_history(run.info.run_id, key)} if key in metrics else {}
+               for key in logged}  # run.data.metrics names every metric the run logged
     if version < 2:
         history["test_ssim_skimage"], history["test_ssim"] = history["test_ssim"], {}
-    for key in ("per_candidate_ms", "selection_seconds", "selection_cpu_seconds"):  # over the picks
-        final[key] = _mean_present(list(history[key].values()))
-    rounds = [{**base, "kind": "round", "num_views": step, "psnr": value,
-               "ssim": history["test_ssim"].get(step), "ssim_skimage": history["test_ssim_skimage"].get(step),
-               **_search_columns(history, step)}
-              for step, value in sorted(history["test_psnr"].items())]
+    final.update({c.column: mean_present(list(history[c.metric].values())) for c in PICK_COLUMNS})  # over the picks
+    rounds = [{**base, "kind": "round", "num_views": step,
+               **{c.column: history[c.metric].get(step) for c in ROUND_METRICS}, **_search_columns(history, step)}
+              for step in sorted(history["test_psnr"])]
     if "acquired_poses" in tags:  # a search round that took its pose took the next captured one
         poses = iter(json.loads(tags["acquired_poses"]))
         final["poses"] = tags["acquired_poses"]
@@ -269,7 +249,8 @@ def _rows_of_run(client, run, experiment: str) -> list[dict]:
 
 # the round metrics of a search off the pool (tracking.round_metrics logs them) and their record columns;
 # search_taken as a metric: which pick a round took (a captured view has a pose: search, pool_captured)
-SEARCH_METRICS = ("search_score", "search_best_start_score", "search_best_pool_score", "search_taken")
+SEARCH_SCORES = ("score", "best_start_score", "best_pool_score")
+SEARCH_METRICS = (*(f"search_{k}" for k in SEARCH_SCORES), "search_taken")
 SEARCH_TAKEN_CODES = {"pool": 0.0, "search": 1.0, "pool_captured": 2.0}
 SEARCH_TAKEN_NAMES = {code: name for name, code in SEARCH_TAKEN_CODES.items()}
 

@@ -25,6 +25,8 @@ from typing import Protocol, runtime_checkable
 
 from pipeline.active.results import RoundRecord
 from pipeline.experiment.records import SEARCH_TAKEN_CODES, depth_columns, uncertainty_columns
+from pipeline.experiment.record_columns import final_metrics, final_tags
+from pipeline.experiment.record_columns import round_metrics as recorded_round_metrics
 from pipeline.experiment.console import console
 from pipeline.experiment.outcome import JobOutcome, RoundMessage
 from pipeline.experiment.provenance import code_version
@@ -62,15 +64,11 @@ def job_params(job: Job) -> dict[str, str]:
 
 
 def round_metrics(r: RoundRecord) -> list[tuple[str, float, int]]:
-    """The metrics of one round record (or live round message), at step = views trained on
-    (``test_ssim`` is 3DGS's SSIM, ``test_ssim_skimage`` scikit-image's; None is not logged)."""
+    """The metrics of one round record (or live round message), at step = views trained on: its
+    recorded fields (``record_columns``; ``test_ssim`` is 3DGS's SSIM, ``test_ssim_skimage``
+    scikit-image's; None is not logged), then a search's account off the pool."""
     step = r.num_views
-    out = [("test_psnr", r.test_psnr, step), ("test_ssim", r.test_ssim, step),
-           ("test_ssim_skimage", r.test_ssim_skimage, step), ("num_gaussians", r.num_gaussians, step)]
-    if r.selected:
-        out += [("per_candidate_ms", r.per_candidate_ms, step),
-                ("selection_seconds", r.selection_seconds, step),
-                ("selection_cpu_seconds", r.selection_cpu_seconds, step)]
+    out = recorded_round_metrics(r)
     if r.search:  # a round off the pool (records.SEARCH_METRICS reads these back)
         out += [(f"search_{key}", r.search[key], step) for key in ("score", "best_start_score",
                                                                    "best_pool_score", "evaluations", "seconds")]
@@ -297,10 +295,8 @@ class MlflowTracker:
         tags.update({f"worker.{k}": str(w[k]) for k in ("host", "node", "code_version", "packages", "locked",
                                                          "cpu", "starts") if k in w})
         final = outcome.final
-        if final is not None:
-            tags["degraded"] = str(bool(final.degraded)).lower()  # > 3 dB below its last round (see records)
-            tags["lpips_status"] = str(final.lpips_status)[:5000]  # why LPIPS is (un)available
-            tags["metrics_version"] = str(final.metrics_version)  # what final_ssim means (active.results)
+        if final is not None:  # degraded, lpips_status, metrics_version (what final_ssim means) ...
+            tags.update(final_tags(final))
         poses = json.dumps(outcome.episode.acquired_poses) if outcome.episode is not None else "null"
         if poses not in ("null", "[]") and len(poses) <= 5000:  # the views captured off the pool (a tag's limit;
             tags["acquired_poses"] = poses                          # result.json, an artifact, has them all)
@@ -326,11 +322,7 @@ class MlflowTracker:
         episode = outcome.episode
         out = [m for r in episode.rounds if r.num_views not in logged for m in round_metrics(r)]
         final = episode.final
-        out += [("final_psnr", final.psnr, 0), ("final_ssim", final.ssim, 0),
-                ("final_ssim_skimage", final.ssim_skimage, 0), ("wall_seconds", outcome.seconds, 0),
-                ("curve_psnr_drop", final.curve_psnr_drop, 0), ("nonfinite_steps", final.nonfinite_steps, 0),
-                ("final_lpips", final.lpips, 0)]
-        out.append(("path_length", final.path_length, 0))
+        out += final_metrics(final) + [("wall_seconds", outcome.seconds, 0)]
         # the families records_from_mlflow reads back by prefix (records.TRACKED_METRIC_PREFIXES)
         out += [(k, v, 0) for k, v in {**uncertainty_columns(final.uncertainty), **depth_columns(final.depth)}.items()]
         return out
