@@ -142,7 +142,7 @@ def test_uncertainty_experiment_gives_curves_and_ause(scene_dir):
     assert out.variance_maps.shape == (2, 32, 32, 3) and bool((out.variance_maps >= 0).all())
     import json
     from dataclasses import replace
-    from pipeline.active.results import UncertaintyResult
+    from pipeline.interchange.results import UncertaintyResult
     plain = json.loads(json.dumps(out.to_dict()))  # what result.json and Ray carry
     assert UncertaintyResult.from_dict(plain) == replace(out, variance_maps=None, renders=None, ground_truth=None)
 

@@ -427,7 +427,7 @@ def test_a_missing_kernel_cache_is_announced_and_compiled_before_any_job(tmp_pat
 
 def test_the_eta_comes_from_the_first_round_before_any_job_finishes(capsys):
     """No ETA until the first job finished (minutes at the paper preset): the rounds give one."""
-    from pipeline.active.results import RoundRecord
+    from pipeline.interchange.results import RoundRecord
     from pipeline.experiment.outcome import RoundMessage
     from pipeline.experiment.sweep import Progress
     jobs = [SimpleNamespace(config_hash=h, label=f"job {h}") for h in "abcd"]

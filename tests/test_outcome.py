@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import pytest
 
-from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
+from pipeline.interchange.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.experiment.outcome import FAILED, FINISHED, TRACEBACK_ARTIFACT, JobOutcome
 
 

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord, recorded
+from pipeline.interchange.results import EpisodeResult, FinalMetrics, RoundRecord, recorded
 from pipeline.experiment.record_columns import (FINAL_COLUMNS, ROUND_COLUMNS, ROUND_METRICS, columns_of,
                                                 final_tags)
 from pipeline.experiment.records import _rows_of_run, episode_rows

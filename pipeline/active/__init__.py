@@ -3,7 +3,7 @@
 from pipeline.active.config import EpisodeConfig, cpu_episode, episode_preset, paper_episode, tiny_episode
 from pipeline.active.episode import run_episode
 from pipeline.active.plan import EpisodeOutline, EpisodePlan
-from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
+from pipeline.interchange.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.schedule import Schedule, episode_schedule
 
 __all__ = ["EpisodeConfig", "EpisodeOutline", "EpisodePlan", "EpisodeResult", "FinalMetrics", "RoundRecord", "Schedule",

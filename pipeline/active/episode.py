@@ -25,7 +25,7 @@ from pipeline.acquisition.validation import RoundAsk, check_selection
 from pipeline.active.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.pose_selection import AcquiredViews, episode_pose_space, make_world, search_next_pose
-from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord
+from pipeline.interchange.results import EpisodeResult, FinalMetrics, RoundRecord
 from pipeline.active.plan import EpisodePlan
 from pipeline.cameras import Cameras
 from pipeline.splat.compiled import compile_seconds

@@ -24,7 +24,7 @@ from pipeline.acquisition.activenerf import ActiveNeRFStrategy
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.episode import initial_gaussians
 from pipeline.active.plan import uniform_subset
-from pipeline.active.results import UncertaintyResult
+from pipeline.interchange.results import UncertaintyResult
 from pipeline.bounds import FLOAT, INT, bounded, require_bounds
 from pipeline.cameras import Cameras
 from pipeline.data.sampling import seeded_subset

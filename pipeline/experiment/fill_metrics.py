@@ -1,5 +1,5 @@
 """Fill in what a finished sweep's records lack, from each job's final model: the 3DGS SSIM of
-episodes recorded before metrics version 2 (``pipeline.active.results``), and the final model's
+episodes recorded before metrics version 2 (``pipeline.interchange.results``), and the final model's
 pixel-level uncertainty, camera path and (generated scene) depth errors of episodes recorded before
 those were measured (``fill_uncertainty``).
 
@@ -40,9 +40,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pipeline.active.results import METRICS_VERSION, EpisodeResult
+from pipeline.interchange.results import METRICS_VERSION, EpisodeResult
 from pipeline.eval.metrics import evaluate_views
 from pipeline.experiment.layout import JobFolder, SweepFolder
+from pipeline.interchange.sweep_results import SweepResults
 from pipeline.experiment.records import RecordsFile, depth_columns, uncertainty_columns
 from pipeline.experiment.scene_lookup import scene_of
 from pipeline.splat import ply, render
@@ -80,14 +81,15 @@ def fill_each(folder: str | Path, data_root: str | None, current: Callable[[Job,
     (a ValueError refuses it, leaving it as it was), then its result.json and its records rows
     (``rows``) are written and ``said`` is printed."""
     sweep = SweepFolder(Path(folder))
+    results = SweepResults(sweep.path)
     records = RecordsFile(sweep.path)
     report = FillReport()
     scenes: dict = {}  # (scene, width) -> Scene: a sweep's jobs share a few scenes
     for job in read_jobs(sweep):
         layout = sweep.job(job.config_hash)
-        if job.kind != "episode" or not layout.result_file.exists():
+        episode = results.episode(job.config_hash) if job.kind == "episode" else None
+        if episode is None:
             continue
-        episode = EpisodeResult.from_dict(json.loads(layout.result_file.read_text()))
         if current(job, episode):
             report.current.append(job.config_hash)
             continue

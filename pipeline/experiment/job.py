@@ -39,7 +39,8 @@ from pipeline.eval.model_uncertainty import final_model_uncertainty
 from pipeline.fisher.variance import channel_variance_maps, variance_maps
 from pipeline.splat import ply, render
 from pipeline.splat.render import RenderOutput
-from pipeline.active.results import EpisodeResult
+from pipeline.cameras import Cameras
+from pipeline.interchange.results import EpisodeResult
 from pipeline.experiment.spec import Job
 
 
@@ -189,6 +190,19 @@ def run_episode_job(job: Job, scene: Scene, folder: Path, report: Report | None 
     return {"result": result.to_dict(), "artifacts": artifacts}
 
 
+def taken_cameras(result: EpisodeResult, pool_cameras: Cameras) -> Cameras:
+    """The cameras of an episode's initial and selected views, in order: pool ids index
+    ``pool_cameras``, the ids after the pool's the captured views (``result.acquired_cameras``)."""
+    ids = result.initial + result.selected
+    n = len(pool_cameras)
+    if all(i < n for i in ids):
+        return pool_cameras[ids]
+    if result.acquired_cameras is None:
+        raise ValueError(f"views {[i for i in ids if i >= n]} are beyond the pool of {n}, and no captured "
+                         "camera is kept")
+    return Cameras.cat([result.acquired_cameras[[i - n]] if i >= n else pool_cameras[[i]] for i in ids])
+
+
 def measure_final_model(result: EpisodeResult, scene: Scene, rendered: RenderOutput, shown: int,
                         generated: bool) -> torch.Tensor | None:
     """Set ``result.final``'s camera path, pixel-level uncertainty on the first ``shown`` test views
@@ -199,7 +213,7 @@ def measure_final_model(result: EpisodeResult, scene: Scene, rendered: RenderOut
     metrics) both measure here."""
     views = scene.split(result.test_split)
     pool = scene.split(result.pool_split).cameras
-    taken = result.taken_cameras(pool)
+    taken = taken_cameras(result, pool)
     result.final.path_length = picked_path(taken.centers, len(result.initial), pool.centers)
     if shown == 0:
         return None

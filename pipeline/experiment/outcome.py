@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
-from pipeline.active.results import EpisodeResult, FinalMetrics, RoundRecord, UncertaintyResult
+from pipeline.interchange.results import EpisodeResult, FinalMetrics, RoundRecord, UncertaintyResult
 
 FINISHED, FAILED = "FINISHED", "FAILED"
 TRACEBACK_ARTIFACT = "traceback.txt"

@@ -1,5 +1,5 @@
 """The records' scalar columns, derived once from the typed records' fields (``recorded`` metadata on
-``RoundRecord`` and ``FinalMetrics``, ``pipeline.active.results``): the records file's rows
+``RoundRecord`` and ``FinalMetrics``, ``pipeline.interchange.results``): the records file's rows
 (``records.episode_rows``), what MLflow logs (``tracking``) and the read-back from MLflow
 (``records.records_from_mlflow``) all take their lists from here, so a new recorded quantity is one
 field of the record plus the code that measures it.
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.active.results import FinalMetrics, RoundRecord
+from pipeline.interchange.results import FinalMetrics, RoundRecord
 
 
 @dataclass(frozen=True)

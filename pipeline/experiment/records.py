@@ -3,7 +3,7 @@
 Rows, by ``kind``:
 - ``round``: one per episode round (``num_views`` = views trained on; the PSNR-vs-views curve).
 - ``final``: one per job: final metrics on every test view (``ssim`` is 3DGS's, ``ssim_skimage``
-  scikit-image's, ``metrics_version`` and ``ssim_source`` as in ``pipeline.active.results``),
+  scikit-image's, ``metrics_version`` and ``ssim_source`` as in ``pipeline.interchange.results``),
   status, selection cost, run id,
   ``degraded`` (the final model scored more than 3 dB below the last round on the same views),
   ``curve_psnr_drop`` (that difference) and ``nonfinite_steps`` (training steps skipped because
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.active.results import EpisodeResult, FinalMetrics, UncertaintyResult
+from pipeline.interchange.results import EpisodeResult, FinalMetrics, UncertaintyResult
 from pipeline.experiment.outcome import JobOutcome
 from pipeline.experiment.record_columns import (FINAL_METRICS, FINAL_TAGS, PICK_COLUMNS, ROUND_METRICS,
                                                 final_values, mean_present, pick_means, round_values)

@@ -16,7 +16,6 @@ takes the images a job saved there whenever MLflow did not receive them live).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Callable
 
 import pandas as pd
 
-from pipeline.experiment.layout import SweepFolder
+from pipeline.interchange.sweep_results import SweepResults
 from pipeline.experiment.outcome import FINISHED, JobOutcome
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.spec import Job
@@ -67,14 +66,15 @@ def finished_not_in(records: RecordsFile, have: set[str]) -> list[str]:
     return [h for h in dict.fromkeys(finals["config_hash"]) if h not in have]
 
 
-def outcome_of(job_folder, row: pd.Series) -> JobOutcome:
+def outcome_of(results: SweepResults, config_hash: str, row: pd.Series) -> JobOutcome:
     """A finished job's outcome as the worker returned it, from what the sweep kept."""
+    job_folder = results.job(config_hash)
     folder = job_folder.artifacts
     artifacts = {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
                  if p.is_file() and p != job_folder.result_file}
     cells = {key: _plain(row.get(column)) for key, column in WORKER_COLUMNS.items()}
     worker = {key: value for key, value in cells.items() if value is not None}
-    return JobOutcome(FINISHED, _count(row.get("attempts")), [], json.loads(job_folder.result_file.read_text()),
+    return JobOutcome(FINISHED, _count(row.get("attempts")), [], results.episode_data(config_hash),
                       artifacts, _number(row.get("wall_seconds")), worker=worker)
 
 
@@ -83,15 +83,15 @@ def replay(tracker: Tracker, jobs: dict[str, Job], output_dir: Path, records: Re
     """Log each of ``hashes`` as a finished run; a job the store refuses (a server still down) is
     counted as failed and the rest are still tried."""
     out = Replay()
-    finals = finished_rows(records)
+    finals, results = finished_rows(records), SweepResults(output_dir)
     for config_hash in hashes:
-        job, job_folder = jobs.get(config_hash), SweepFolder(output_dir).job(config_hash)
-        if job is None or not job_folder.result_file.exists() or finals.empty:
+        job = jobs.get(config_hash)
+        if job is None or not results.job(config_hash).result_file.exists() or finals.empty:
             out.unknown.append(config_hash)
             continue
         row = finals[finals["config_hash"] == config_hash].iloc[-1]
         try:
-            run_id = tracker.log_job(job, outcome_of(job_folder, row))
+            run_id = tracker.log_job(job, outcome_of(results, config_hash, row))
         except Exception:  # the server is still away: the records keep the job, the next try takes it
             out.failed.append(config_hash)
             continue

@@ -12,7 +12,7 @@ import torch
 
 from pipeline.active.config import EpisodeConfig
 from pipeline.active.plan import EpisodePlan
-from pipeline.active.results import EpisodeResult
+from pipeline.interchange.results import EpisodeResult
 from pipeline.data.protocols import ProtocolViews
 from pipeline.data.scene import Scene
 from pipeline.experiment.spec import Job

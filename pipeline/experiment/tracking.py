@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
-from pipeline.active.results import RoundRecord
+from pipeline.interchange.results import RoundRecord
 from pipeline.experiment.records import SEARCH_TAKEN_CODES, depth_columns, uncertainty_columns
 from pipeline.experiment.record_columns import final_metrics, final_tags
 from pipeline.experiment.record_columns import round_metrics as recorded_round_metrics

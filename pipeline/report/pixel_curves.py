@@ -6,12 +6,11 @@ the random one (the error of all pixels)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pandas as pd
 
-from pipeline.interchange.layout import SweepFolder
+from pipeline.interchange.sweep_results import SweepResults
 
 COLUMNS = ["scene", "method", "seed", "error", "fraction", "by_uncertainty", "oracle", "random"]
 
@@ -21,11 +20,10 @@ def pixel_curves(sweep_dir: Path | None, finals: pd.DataFrame) -> pd.DataFrame:
     rows = []
     if sweep_dir is None or finals.empty:
         return pd.DataFrame(columns=COLUMNS)
+    results = SweepResults(sweep_dir)
     for final in finals.itertuples():
-        result = SweepFolder(Path(sweep_dir)).job(str(final.config_hash)).result_file
-        if not result.exists():
-            continue
-        curves = (json.loads(result.read_text()).get("final") or {}).get("uncertainty_curves")
+        episode = results.episode_data(str(final.config_hash)) or {}  # plain: a job older than a field still reads
+        curves = (episode.get("final") or {}).get("uncertainty_curves")
         if not curves:
             continue
         for error in ("mae", "rmse", "dssim"):

@@ -39,7 +39,7 @@ def load_records(source: str | Path) -> pd.DataFrame:
 
 def with_metrics_version(frame: pd.DataFrame) -> pd.DataFrame:
     """Rows recorded before metrics version 2 (no ``metrics_version``; see
-    ``pipeline.active.results``) had scikit-image's SSIM under ``ssim``: it moves to
+    ``pipeline.interchange.results``) had scikit-image's SSIM under ``ssim``: it moves to
     ``ssim_skimage`` and their ``ssim`` (3DGS's) is missing, so one column never mixes the two."""
     frame = frame.copy()
     if "metrics_version" not in frame:
@@ -406,8 +406,7 @@ def search_section(frame: pd.DataFrame, sweep_dir: Path | None, out: Path, made:
              *search.world_notes(frame), "",
              search.search_table(frame), "Selection time per round (the search included):", "",
              search.selection_time_table(frame)]
-    for k, (label, path) in enumerate(search.landscape_jobs(frame, sweep_dir).items() if sweep_dir else []):
-        rounds = search.read_landscapes(path)
+    for k, (label, rounds) in enumerate(search.landscape_jobs(frame, sweep_dir).items() if sweep_dir else []):
         if rounds:
             name = f"search_landscape_{k}.png"
             made[name] = figures.search_landscape(rounds, out / "figures" / name, f"score landscape: {label}")

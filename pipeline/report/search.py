@@ -17,14 +17,13 @@ gains negated). Three things come out of a sweep:
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from pipeline.interchange.layout import SweepFolder
+from pipeline.interchange.sweep_results import SweepResults
 from pipeline.report.rows import finished
 from pipeline.report.stats import paired_comparisons, with_curve_area
 from pipeline.report.tables import PairedTable
@@ -184,19 +183,15 @@ def landscapes(result: dict) -> list[RoundLandscape]:
     return out
 
 
-def landscape_jobs(frame: pd.DataFrame, sweep_dir: Path) -> dict[str, Path]:
-    """For each scene, setting and searched method: its first seed's ``result.json`` (label -> path)."""
+def landscape_jobs(frame: pd.DataFrame, sweep_dir: Path) -> dict[str, list[RoundLandscape]]:
+    """For each scene, setting and searched method: its first seed's searched rounds (label -> landscapes)."""
     rounds = search_rounds(frame)
     rounds = rounds.assign(setting=_setting(rounds))
-    out = {}
+    results, out = SweepResults(sweep_dir), {}
     for (scene, setting, method), part in rounds.groupby(["scene", "setting", "method"], sort=False):
         first = part.sort_values("seed").iloc[0]
-        path = SweepFolder(sweep_dir).job(str(first["config_hash"])).result_file
-        if path.exists():
+        episode = results.episode_data(str(first["config_hash"]))
+        if episode is not None:
             label = ", ".join(x for x in (method, scene, setting, f"seed {first['seed']}") if x)
-            out[label] = path
+            out[label] = landscapes(episode)
     return out
-
-
-def read_landscapes(path: Path) -> list[RoundLandscape]:
-    return landscapes(json.loads(Path(path).read_text()))

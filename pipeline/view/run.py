@@ -10,7 +10,6 @@ round ``r``: the views taken, the probes, every candidate's score, the pick, and
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -26,6 +25,7 @@ from pipeline.experiment.export import from_checkpoint
 from pipeline.experiment.layout import JobFolder, SweepFolder
 from pipeline.experiment.scene_lookup import scene_of
 from pipeline.experiment.spec import Job
+from pipeline.interchange.sweep_results import SweepResults
 from pipeline.splat import Gaussians, ply
 
 
@@ -186,9 +186,9 @@ def load_folder(folder: Path, scene: str | None = None, data_root: str | None = 
         raise ValueError(f"{folder}: no such job folder")
     job = job_entry(folder)
     layout = JobFolder(folder)
-    result_file, checkpoint = layout.result_file, layout.checkpoint_file
-    if result_file.exists():
-        result = json.loads(result_file.read_text())
+    checkpoint = layout.checkpoint_file
+    result = SweepResults(SweepFolder.of_job(folder).path).episode_data(folder.name)
+    if result is not None:
         records, initial, selected = result["rounds"][:-1], result["initial"], result["selected"]
         final_psnr = float(result["final"]["psnr"])
         saved = layout.model_file  # absent in runs older than the exporter

@@ -20,12 +20,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the tensors an episode hands back in-process, never part of the plain data
+    from torch import Tensor
+
     from pipeline.cameras import Cameras
-
-from torch import Tensor
-
-from pipeline.splat import Gaussians
+    from pipeline.splat import Gaussians
 
 METRICS_VERSION = 2
 
@@ -159,19 +158,6 @@ class EpisodeResult:
     # world != dataset: the poses of the captured views, in pick order (their ids follow the pool's)
     acquired_poses: list[list[float]] | None = None
     acquired_cameras: "Cameras | None" = None  # their cameras (not part of ``to_dict``)
-
-    def taken_cameras(self, pool_cameras: "Cameras") -> "Cameras":
-        """The cameras of the initial and selected views, in order: pool ids index ``pool_cameras``,
-        the ids after the pool's the captured views."""
-        from pipeline.cameras import Cameras
-        ids = self.initial + self.selected
-        n = len(pool_cameras)
-        if all(i < n for i in ids):
-            return pool_cameras[ids]
-        if self.acquired_cameras is None:
-            raise ValueError(f"views {[i for i in ids if i >= n]} are beyond the pool of {n}, and no captured "
-                             "camera is kept")
-        return Cameras.cat([self.acquired_cameras[[i - n]] if i >= n else pool_cameras[[i]] for i in ids])
 
     def to_dict(self) -> dict:
         out = {f.name: getattr(self, f.name) for f in fields(self)
