@@ -8,14 +8,29 @@ import torch
 SHARED_DATA = Path(os.environ.get("GOPRE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
-# Threads per test process: 2 (the machine's cores); `make mutate` sets 1, since mutmut forks its
-# workers from a process that must never have entered a parallel OpenMP region (fork-unsafe).
-TEST_THREADS = int(os.environ.get("GOPRE_TEST_THREADS", "2"))
+def share_of_cores() -> int:
+    """Threads per test process: the machine's cores shared among pytest-xdist's workers (`make test`:
+    2 workers on 2 cores, one thread each; one process alone: 2). A process given more threads than its
+    share makes torch's threads wait on each other: the acquisition and Fisher tests on 2 workers took
+    291 s at 2 threads each and 53 s at 1 (2026-12-07, beside a sweep)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    return max(1, min(2, cores // workers))
+
+
+# `make mutate` sets 1, since mutmut forks its workers from a process that must never have entered a
+# parallel OpenMP region (fork-unsafe).
+TEST_THREADS = int(os.environ.get("GOPRE_TEST_THREADS", share_of_cores()))
 
 
 @pytest.fixture(autouse=True)
-def _threads():
-    torch.set_num_threads(TEST_THREADS)
+def _threads(request):
+    """The process's share of the cores; a test marked ``threads(n)`` gets n (the compiled kernels'
+    threaded branches against their oracles run threaded whatever the share), unless
+    ``GOPRE_TEST_THREADS`` is set."""
+    marker = request.node.get_closest_marker("threads")
+    pinned = "GOPRE_TEST_THREADS" in os.environ  # set by hand (make mutate: 1): it holds for every test
+    torch.set_num_threads(marker.args[0] if marker is not None and not pinned else TEST_THREADS)
     yield
 
 

@@ -16,8 +16,11 @@ from pipeline.splat.compiled import rasterize_compiled
 from pipeline.splat.project import project
 from pipeline.splat.scenes import orbit_cameras, random_scene
 
-pytestmark = pytest.mark.skipif(compiled.load() is None,
-                                reason=f"compiled backend unavailable: {compiled.load_error()}")
+# the compiled kernels against their oracles, on two threads (their threaded branches) whatever the
+# process's share of the cores
+pytestmark = [pytest.mark.skipif(compiled.load() is None,
+                                 reason=f"compiled backend unavailable: {compiled.load_error()}"),
+              pytest.mark.threads(2)]
 
 F64 = torch.float64
 BG = torch.tensor([0.2, 0.5, 0.9], dtype=F64)

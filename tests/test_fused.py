@@ -23,8 +23,11 @@ from pipeline.splat.training_view import (fused_training_step, training_view_com
                                           training_view_generic)
 from tests.test_compiled import with_hard_cases
 
-pytestmark = pytest.mark.skipif(compiled.load() is None,
-                                reason=f"compiled backend unavailable: {compiled.load_error()}")
+# the compiled kernels against their oracles, on two threads (their threaded branches) whatever the
+# process's share of the cores
+pytestmark = [pytest.mark.skipif(compiled.load() is None,
+                                 reason=f"compiled backend unavailable: {compiled.load_error()}"),
+              pytest.mark.threads(2)]
 
 F64 = torch.float64
 
