@@ -89,7 +89,7 @@ def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = Tr
     empty sector, no extent ...), found by making each distinct episode plan (``EpisodePlan``, what
     the job makes first) before any job starts; with ``decode``, one per image those views use that
     cannot be decoded (a zero-byte file would otherwise fail the job that happens to pick it, mid-sweep)."""
-    errors, built, too_many, said = [], {}, set(), set()
+    errors, built, too_many = [], {}, set()
     used: dict[tuple[str, str], set[int]] = {}
     for job in jobs:
         if job.kind != "episode" or scene_key(job) not in scenes:
@@ -101,9 +101,8 @@ def protocol_errors(jobs: list[Job], scenes: dict[str, Scene], decode: bool = Tr
             except ValueError as err:
                 where = f" ({job.setting})" if job.setting else ""
                 line = f"protocol on dataset.{job.dataset} scene {job.scene!r}{where}: {err}"
-                if line not in said:  # plans that differ beyond the protocol fail alike: one line
+                if line not in errors:  # plans that differ beyond the protocol fail alike: one line
                     errors.append(line)
-                    said.add(line)
                 views = None
             else:
                 used.setdefault((scene_key(job), views.pool_split), set()).update(
