@@ -11,7 +11,8 @@ from hydra import compose, initialize_config_dir
 
 from pipeline.data.synthetic import generate
 from pipeline.cli.run import CONF_DIR
-from pipeline.experiment.build import config_hash, expand_jobs
+from pipeline.experiment.spec import config_hash
+from pipeline.experiment.build import expand_jobs
 
 BIN = Path(sys.executable).parent
 TINY = ["experiment=debug", "splat.iterations=60", "protocol.budget=3", "protocol.probes=2",
@@ -56,7 +57,7 @@ def test_config_hash_golden_value():
 def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():
     """splat.fit.<group>.<name>=value reaches the episode's fit recipe (applied after the preset
     and splat.iterations / image_width / max_gaussians); a preset without it keeps its hash."""
-    from pipeline.experiment.build import ConfigError, episode_config
+    from pipeline.experiment.episode_settings import ConfigError, episode_config
     base = first_job()
     job = first_job("splat.fit.lr.means_init=1e-4", "splat.fit.densify.grad_threshold=3e-4",
                     "splat.fit.ssim_weight=0.3", "splat.image_width=40")
@@ -193,13 +194,15 @@ def test_relaunch_skips_only_jobs_whose_final_row_is_finished(tmp_path):
 @pytest.mark.parametrize("value,expected", [("3", [3]), ("[1,2]", [1, 2]), ("zero", None), ("[]", None),
                                             ("[a]", None), ("null", None), ("true", None), ("[1,true]", None)])
 def test_seeds_are_a_list_of_integers_or_one_integer(value, expected):
-    from pipeline.experiment.build import ConfigError, seeds_of
-    cfg = composed([f"seeds={value}"])
+    from pipeline.experiment.episode_settings import ConfigError
+    from pipeline.experiment.build import plain_config
+    from pipeline.experiment.resolution import seeds_of
+    seeds = plain_config(composed([f"seeds={value}"]))["seeds"]
     if expected is not None:
-        assert seeds_of(cfg) == expected
+        assert seeds_of(seeds) == expected
     else:
         with pytest.raises(ConfigError, match=r"^seeds: expected a non-empty list of integers, e\.g\. seeds=\[0,1,2\], got "):
-            seeds_of(cfg)
+            seeds_of(seeds)
 
 
 def test_records_from_older_sweeps_and_new_folders(tmp_path):

@@ -20,7 +20,8 @@ from pipeline.bounds import BOOL, FLOAT, INT, STR, Bound, bounded, declared, vio
 from pipeline.cli.run import CONF_DIR
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.data.synthetic import GeneratedScene, generate
-from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.episode_settings import ConfigError
+from pipeline.experiment.build import expand_jobs
 from pipeline.experiment.schema import (EXECUTORS, SPLAT_FIELDS, JobSection, Sweep, TrackingSection,
                                         field_bound, schema_markdown)
 from pipeline.fit.config import FitConfig

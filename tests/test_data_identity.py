@@ -106,7 +106,8 @@ def test_colmap_sources_are_the_model_and_the_image_folder_and_masks_only_when_r
 
 
 def test_the_fingerprint_enters_the_hash_the_records_and_the_result_file(small_scene, tmp_path):
-    from pipeline.experiment.build import config_hash, expand_jobs, without_data_identity
+    from pipeline.experiment.spec import config_hash, without_data_identity
+    from pipeline.experiment.build import expand_jobs
     copy = _copy(small_scene, tmp_path, "mine")
     jobs = expand_jobs(_cfg(tmp_path, copy))
     (job,) = jobs
@@ -155,7 +156,8 @@ def test_a_relaunch_over_changed_data_reruns_says_which_scene_and_keeps_the_old_
 
 
 def test_a_folder_launched_before_data_identity_reruns_and_says_it_cannot_tell(small_scene, tmp_path, capsys):
-    from pipeline.experiment.build import expand_jobs, without_data_identity
+    from pipeline.experiment.build import expand_jobs
+    from pipeline.experiment.spec import without_data_identity
     from pipeline.experiment.records import RecordsFile
     from pipeline.experiment.sweep import run_sweep
     copy = _copy(small_scene, tmp_path, "mine")

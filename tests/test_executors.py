@@ -11,7 +11,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.episode_settings import ConfigError
+from pipeline.experiment.build import expand_jobs
 from pipeline.experiment.executors import EXECUTOR_KINDS, Executor, make_executor
 from pipeline.experiment.executors.worker import DriverIdentity, read_starts, run_here
 from pipeline.experiment.records import RecordsFile

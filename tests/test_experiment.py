@@ -20,7 +20,8 @@ from omegaconf import OmegaConf
 
 from tests.conftest import free_port
 from pipeline.cli.run import CONF_DIR
-from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.episode_settings import ConfigError
+from pipeline.experiment.build import expand_jobs
 from pipeline.experiment.provenance import code_version
 from pipeline.experiment.records import RecordsFile, records_from_mlflow
 from pipeline.experiment.sweep import run_sweep

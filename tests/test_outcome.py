@@ -108,7 +108,8 @@ def test_a_job_is_the_plain_form_the_hash_and_jobs_json_were_made_of():
     from hydra import compose, initialize_config_dir
 
     from pipeline.cli.run import CONF_DIR
-    from pipeline.experiment.build import config_hash, expand_jobs
+    from pipeline.experiment.spec import config_hash
+    from pipeline.experiment.build import expand_jobs
     from pipeline.experiment.spec import Execution, Job
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         job = expand_jobs(compose("config", ["experiment=debug", "method=[gopre]"]))[0]

@@ -16,7 +16,8 @@ from hydra import compose, initialize_config_dir
 import pipeline.api as api
 from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve_strategy
 from pipeline.cli.run import CONF_DIR
-from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.episode_settings import ConfigError
+from pipeline.experiment.build import expand_jobs
 from tests.api_surface import surface
 
 ROOT = Path(__file__).resolve().parents[1]

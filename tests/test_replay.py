@@ -168,7 +168,7 @@ def test_a_job_the_store_refuses_is_left_for_the_next_try_and_the_others_go_on(f
 
 
 def test_an_executor_that_refuses_to_run_leaves_no_mlflow_run_running(tmp_path, monkeypatch):
-    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.episode_settings import ConfigError
     from pipeline.experiment.executors.local import LocalExecutor
 
     def refuse(self, jobs, scenes, on_done, on_round=None):  # as a node probe that names a node does

@@ -65,7 +65,7 @@ def test_an_impossible_output_dir_is_one_config_error_and_a_bad_port_one_line(tm
     from hydra import compose, initialize_config_dir
 
     from pipeline.cli.run import CONF_DIR
-    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.episode_settings import ConfigError
     from pipeline.experiment.sweep import run_sweep
     blocker = tmp_path / "a_file"
     blocker.write_text("x")

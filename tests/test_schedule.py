@@ -16,7 +16,7 @@ from pipeline.data.load import load_scene
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.data.synthetic import generate
 from pipeline.cli.run import CONF_DIR
-from pipeline.experiment.build import episode_config
+from pipeline.experiment.episode_settings import episode_config
 from pipeline.experiment.splat_section import job_form
 
 SPLAT_PRESETS = sorted(Path(p).stem for p in glob.glob(str(CONF_DIR / "splat" / "*.yaml")))

@@ -34,7 +34,7 @@ def test_another_folders_finished_jobs_are_taken_only_when_named(tmp_path):
     reused_from), runs only the rest, and the store gets them as runs of this folder."""
     from mlflow import MlflowClient
 
-    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.episode_settings import ConfigError
     from pipeline.experiment.layout import SweepFolder
     store = f"sqlite:///{tmp_path / 'server.db'}"
     assert run_sweep(_cfg(tmp_path / "a", store)).finished == 1
@@ -69,7 +69,7 @@ def test_a_copy_that_fails_midway_leaves_no_rows_and_a_named_folder_must_be_an_o
     import pandas as pd
 
     from pipeline.experiment import reuse
-    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.episode_settings import ConfigError
     from pipeline.experiment.layout import SweepFolder
     source, here = tmp_path / "a", tmp_path / "b"
     rows = []

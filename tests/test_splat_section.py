@@ -12,7 +12,8 @@ from omegaconf import OmegaConf
 
 from pipeline.active.config import episode_preset
 from pipeline.cli.run import CONF_DIR
-from pipeline.experiment.build import ConfigError, episode_config, expand_jobs
+from pipeline.experiment.episode_settings import ConfigError, episode_config
+from pipeline.experiment.build import expand_jobs
 from pipeline.experiment.splat_section import FROM_PRESET, job_form
 
 SPLAT_DIR = CONF_DIR / "splat"
@@ -114,7 +115,7 @@ def test_the_published_study_keeps_every_hash_it_was_run_under():
     import csv
 
     from pipeline.cli.run import CONF_DIR as conf
-    from pipeline.experiment.build import without_data_identity
+    from pipeline.experiment.spec import without_data_identity
     published = {(r["method"], r["scene"], int(r["seed"]), r["setting"]): r["config_hash"]
                  for r in csv.DictReader(open(conf.parent / "reports" / "science" / "runs.csv"))}
     expanded = expand_jobs(composed(["experiment=science"]))

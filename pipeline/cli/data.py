@@ -88,7 +88,8 @@ def write_benchmark(preset: str, overrides: list[str], out: Path) -> dict:
     from omegaconf import OmegaConf
 
     from pipeline.cli.run import CONF_DIR, register_resolvers
-    from pipeline.experiment.build import ConfigError, expand_jobs
+    from pipeline.experiment.episode_settings import ConfigError
+    from pipeline.experiment.build import expand_jobs
     from pipeline.experiment.provenance import code_version
     from pipeline.experiment.result_document import benchmark_document, benchmark_entries
     from pipeline.experiment.executors import scene_key

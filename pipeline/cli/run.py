@@ -24,7 +24,8 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.cli import command_name
-from pipeline.experiment.build import ConfigError, expand_jobs, plain_config
+from pipeline.experiment.episode_settings import ConfigError
+from pipeline.experiment.build import expand_jobs, plain_config
 from pipeline.experiment.interrupt import SweepInterrupted, install_stop_handlers
 from pipeline.experiment.plan import hyperparameter_text, plan_jobs, plan_text, schedule_text, slots
 from pipeline.experiment.schema import config_warnings

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.experiment.build import config_hash, without_data_identity
+from pipeline.experiment.spec import config_hash, without_data_identity
 from pipeline.experiment.spec import Job
 
 SUPERSEDED = "records_superseded.parquet"

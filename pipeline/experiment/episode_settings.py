@@ -1,6 +1,6 @@
 """A job's episode settings as the core's plain ``EpisodeConfig``: the splat section's keys over a
 preset, the protocol and the world, checked with errors that name the key. No Hydra here: ``Job``
-(``spec``) resolves its episode with ``episode_config``, ``build`` (the Hydra room) makes the jobs."""
+(``spec``) resolves its episode with ``episode_config``; ``resolution`` makes the jobs."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from pipeline.active.config import EpisodeConfig, episode_preset
+from pipeline.active.uncertainty import UncertaintyConfig
 from pipeline.bounds import under
 from pipeline.data.protocols import ProtocolConfig
 from pipeline.experiment.schema import EPISODE_SETTINGS, SPLAT_FIELDS, splat_problems
@@ -67,6 +68,15 @@ def episode_config(job: Job) -> EpisodeConfig:
                        strategy_options=dict(job.options), seed=job.seed, masks=bool(job.masks), **changes)
     except (ValueError, TypeError) as err:  # EpisodeConfig's fields are the splat section's keys
         raise ConfigError(under(err, "splat.")) from None
+
+
+def uncertainty_config(job: Job) -> UncertaintyConfig:
+    """The core's uncertainty-experiment config of an uncertainty job."""
+    data = dict(job.uncertainty or {})
+    check_keys("uncertainty", data, {f.name for f in fields(UncertaintyConfig)})
+    if "methods" in data:
+        data["methods"] = tuple(data["methods"])
+    return UncertaintyConfig(**data, seed=job.seed)
 
 
 WORLD_KEYS = {"kind", "model", "search"}

@@ -27,7 +27,8 @@ from pipeline.data.images import DataError
 from pipeline.data.load import load_scene
 from pipeline.data.scene import Scene
 from pipeline.eval.images import colormap, png_bytes
-from pipeline.experiment.build import MISSING_DATA, uncertainty_config
+from pipeline.experiment.resolution import MISSING_DATA
+from pipeline.experiment.episode_settings import uncertainty_config
 from pipeline.experiment.layout import BENCHMARK_RESULT, MODEL, JobFolder
 from pipeline.experiment.result_document import result_document
 from pipeline.experiment.outcome import FINISHED, JobOutcome, RoundMessage, StepProgress

@@ -16,7 +16,7 @@ from pipeline.data.load import load_scene
 from pipeline.active.plan import EpisodePlan
 from pipeline.data.scene import Scene
 from pipeline.data.synthetic import at_fraction, generate
-from pipeline.experiment.build import ConfigError
+from pipeline.experiment.episode_settings import ConfigError
 from pipeline.experiment.console import console
 from pipeline.experiment.executors import scene_key
 from pipeline.experiment.provenance import code_version, stale_versions

@@ -95,7 +95,7 @@ def benchmark_entries(jobs: list[Job], scenes: dict, scene_key) -> list[dict]:
     """One entry per (dataset, scene, protocol, seed, setting) of ``jobs`` (methods share it);
     ``scenes[scene_key(job)]`` is the job's scene. Two methods that would see different views
     under one key (a method overriding the protocol) are an error naming both."""
-    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.episode_settings import ConfigError
     entries: dict[tuple, tuple[dict, str]] = {}
     for job in jobs:
         if job.kind != "episode":

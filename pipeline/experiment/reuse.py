@@ -4,7 +4,7 @@ A sweep decides what is done from its own folder (its records, and the tracking 
 ``output_dir``): a new folder recomputes, even on a tracking server another folder filled. To build
 on another folder's results instead, name it: ``reuse_from=[DIR, ...]``. Before anything runs, each
 job of this sweep that is not finished here and is finished in a named folder (same config hash: the
-same computation on the same data, ``build.config_hash``) is copied in, the first named folder first:
+same computation on the same data, ``spec.config_hash``) is copied in, the first named folder first:
 
 - its job folder (``jobs/<hash>``: result, artifacts, model, log, starts, round images; not its
   resume checkpoint), copied before its records rows, so a kill in between leaves a folder without

@@ -133,7 +133,7 @@ def sections(cfg: dict) -> Iterator[tuple[str, type, dict]]:
         try:
             cls = resolve_strategy(str(method.get("strategy"))).cls
         except ValueError:
-            continue  # an unknown strategy has its own error (build.strategy_plugins)
+            continue  # an unknown strategy has its own error (resolution.strategy_plugins)
         if isinstance(method.get("options"), dict) and hasattr(cls, "__dataclass_fields__"):
             yield f"method.{mname}.options.", cls, method["options"]
         if isinstance(method.get("protocol"), dict):

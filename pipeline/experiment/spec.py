@@ -4,17 +4,28 @@
 always been made of, so finished sweeps still resume) and returns ``Job`` records; across Ray a job
 travels as ``to_dict()`` and comes back with ``from_dict``. ``protocol``, ``splat``, ``options``,
 ``generate`` and ``uncertainty`` stay mappings: they are the config's sections, turned into the
-core's dataclasses by ``pipeline.experiment.episode_settings`` (``episode_config``) and
-``pipeline.experiment.build`` (``uncertainty_config``).
+core's dataclasses by ``pipeline.experiment.episode_settings`` (``episode_config``,
+``uncertainty_config``). ``pipeline.experiment.resolution`` makes the jobs of a sweep.
+
+A job's identity is ``config_hash``: the hash of what it computes (no paths, no execution settings).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from pipeline.active.config import EpisodeConfig
+
+
+# Part of every job's hash: bumped when a fix changes what the same config computes, so a sweep
+# never resumes or reuses results of the code before it. "fidelity-1": the paper-fidelity fixes (scene extent,
+# tau -> 0, ActiveNeRF port, prune switch, kNN scales, probes incl. the initial views).
+RESULTS_REVISION = "fidelity-1"
+NOT_HASHED = ("execution", "scene_path", "sweep", "index", "code_version", "config_hash")
 
 
 @dataclass(frozen=True)
@@ -113,3 +124,18 @@ class Job:
         """'method on scene (seed s, setting)', as the driver's lines and the reports name a job."""
         setting = f", {self.setting}" if self.setting else ""
         return f"{self.method} on {self.scene} (seed {self.seed}{setting})"
+
+
+def config_hash(job: dict | Job) -> str:
+    """Stable hash of what a job computes (no paths, no execution settings), of its plain form."""
+    plain = job.to_dict() if isinstance(job, Job) else job
+    core = {k: v for k, v in plain.items() if k not in NOT_HASHED}
+    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def without_data_identity(job: Job) -> str:
+    """The hash the same job had before data identity (no fingerprint in it): what a sweep folder
+    launched before it recorded."""
+    plain = job.to_dict()
+    plain.pop("data_fingerprint", None)
+    return config_hash(plain)

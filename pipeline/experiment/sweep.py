@@ -15,7 +15,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.data.scene import Scene
-from pipeline.experiment.build import ConfigError, expand_jobs
+from pipeline.experiment.episode_settings import ConfigError
+from pipeline.experiment.build import expand_jobs
 from pipeline.experiment.console import console, sweep_log
 from pipeline.experiment.data_changes import SUPERSEDED, data_changes
 from pipeline.experiment.executors import make_executor

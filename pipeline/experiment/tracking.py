@@ -136,7 +136,7 @@ def check_reachable(uri: str, timeout: float = REACH_TIMEOUT_S) -> None:
     import urllib.error
     import urllib.request
 
-    from pipeline.experiment.build import ConfigError
+    from pipeline.experiment.episode_settings import ConfigError
     if not uri.startswith(("http://", "https://")):
         return
     try:

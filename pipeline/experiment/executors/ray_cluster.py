@@ -23,7 +23,7 @@ import uuid
 from pathlib import Path
 
 from pipeline.data.scene import Scene
-from pipeline.experiment.build import ConfigError
+from pipeline.experiment.episode_settings import ConfigError
 from pipeline.experiment.console import console
 from pipeline.experiment.executors.base import OnDone, OnRound, scene_key
 from pipeline.experiment.executors.worker import DriverIdentity, identity_problem, pin_differences, run_here

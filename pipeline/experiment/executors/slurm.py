@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.data.scene import Scene
-from pipeline.experiment.build import ConfigError
+from pipeline.experiment.episode_settings import ConfigError
 from pipeline.experiment.executors.base import OnDone, OnRound
 from pipeline.experiment.executors.worker import DriverIdentity, read_starts, run_here
 from pipeline.experiment.interrupt import SweepInterrupted, critical
