@@ -1,6 +1,7 @@
 """Paired old-vs-new final PSNR of two runs of the same study, from their reports' runs.csv.
 
-    python tools/compare_revisions.py reports/science/before_fidelity/runs.csv reports/science/runs.csv
+    python tools/compare_revisions.py OLD/runs.csv NEW/runs.csv
+    (the science study before the fidelity fixes: git show 3a7e471:reports/science/before_fidelity/runs.csv)
 
 A pair is one (method, scene, seed, setting) FINISHED in both. Prints a Markdown table per
 (scene, setting, method): pairs, mean old, mean new, mean and range of new - old; and the methods'
