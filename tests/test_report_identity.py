@@ -90,3 +90,20 @@ def test_a_plugin_edited_between_runs_is_refused_by_the_report(tmp_path, monkeyp
     assert runs["plugin_sha256"].nunique() == 2 and set(runs["data_fingerprint"]) == {runs["data_fingerprint"][0]}
     assert runs["data_fingerprint"][0].startswith("generated-")
     assert "## What each row averages" in (tmp_path / "rep" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("argv,line", [
+    (["--paper-only", "nowhere"], "--paper-only goes with --paper"),
+    (["--mlflow-uri", "http://x:5000"], "--mlflow-uri and --experiment go together"),
+    ([], "give a sweep folder, --results, or --mlflow-uri and --experiment"),
+    (["--by-sweep", "nowhere"], "--by-sweep compares sweeps: give two or more sweep folders"),
+    (["nowhere", "--benchmark", "b.json"], "--benchmark goes with --results"),
+    (["nowhere", "--seeds", "0,x"], "--seeds: expected integers separated by commas, got '0,x'"),
+])
+def test_report_arguments_that_do_not_go_together_are_refused_before_reading(argv, line, capsys):
+    """Each is a usage error (exit 2) naming the arguments, before any folder is read (``nowhere``
+    does not exist: reading it first would be a different error)."""
+    from pipeline.cli.report import main
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and line in capsys.readouterr().err

@@ -92,7 +92,7 @@ def baseline_setting(frame, args) -> str | None:
     return str(final["setting"].iloc[0]) if not final.empty else None
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=command_name("report"), description=__doc__,
                                      epilog=alias_note("report"),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -132,37 +132,55 @@ def main(argv=None) -> int:
                              "listed in report.md")
     parser.add_argument("--paper-only", action="store_true",
                         help="with --paper: write only paper.md into --out (no tables, figures, run list)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Arguments that do not go together: a usage error before anything is read."""
     if args.paper_only and args.paper is None:
         parser.error("--paper-only goes with --paper")
+    if (args.mlflow_uri or args.experiment) and not (args.mlflow_uri and args.experiment):
+        parser.error("--mlflow-uri and --experiment go together")
+    if not (args.mlflow_uri or args.source or args.results):
+        parser.error("give a sweep folder, --results, or --mlflow-uri and --experiment")
+    if args.by_sweep and not args.mlflow_uri and len(args.source) < 2:
+        parser.error("--by-sweep compares sweeps: give two or more sweep folders")
+    if args.benchmark and not args.results:
+        parser.error("--benchmark goes with --results")
+    if args.seeds:
+        try:
+            args.seeds = {int(x) for x in args.seeds.split(",")}
+        except ValueError:
+            parser.error(f"--seeds: expected integers separated by commas, got {args.seeds!r}")
+
+
+def records_of(args: argparse.Namespace):
+    """The records frame to report and the folder it came from: MLflow's runs, the sweep folders,
+    the accepted ``--results`` appended, only ``--seeds``; refused when a row mixes identities."""
+    if args.mlflow_uri:
+        from pipeline.experiment.records import records_from_mlflow  # the tracking edge
+        frame, source = records_from_mlflow(args.mlflow_uri, args.experiment), Path(".")
+    elif args.source:
+        frame, source = combine_records(args.source, by_sweep=args.by_sweep), args.source[0]
+    else:
+        frame, source = None, Path(".")
+    if args.results:
+        frame = with_results(frame, args.results, args.benchmark, list(args.source))
+    if args.seeds:
+        frame = frame[frame["seed"].isin(args.seeds)]
+        if frame.empty:
+            raise ValueError(f"no records for seeds {sorted(args.seeds)}")
+    from pipeline.report.identity import check_rows
+    check_rows(frame, args.allow_mixed)
+    return frame, source
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    _check_arguments(parser, args)
     try:
-        if args.mlflow_uri or args.experiment:
-            if not (args.mlflow_uri and args.experiment):
-                parser.error("--mlflow-uri and --experiment go together")
-            from pipeline.experiment.records import records_from_mlflow  # the tracking edge
-            frame, source = records_from_mlflow(args.mlflow_uri, args.experiment), Path(".")
-        elif not args.source and not args.results:
-            parser.error("give a sweep folder, --results, or --mlflow-uri and --experiment")
-        elif args.source:
-            if args.by_sweep and len(args.source) < 2:
-                parser.error("--by-sweep compares sweeps: give two or more sweep folders")
-            frame, source = combine_records(args.source, by_sweep=args.by_sweep), args.source[0]
-        else:
-            frame, source = None, Path(".")
-        if args.benchmark and not args.results:
-            parser.error("--benchmark goes with --results")
-        if args.results:
-            frame = with_results(frame, args.results, args.benchmark, list(args.source))
-        if args.seeds:
-            try:
-                seeds = {int(x) for x in args.seeds.split(",")}
-            except ValueError:
-                parser.error(f"--seeds: expected integers separated by commas, got {args.seeds!r}")
-            frame = frame[frame["seed"].isin(seeds)]
-            if frame.empty:
-                raise ValueError(f"no records for seeds {sorted(seeds)}")
-        from pipeline.report.identity import check_rows
-        check_rows(frame, args.allow_mixed)
+        frame, source = records_of(args)
         out = args.out or Path("reports") / str(frame["sweep"].iloc[0])
         problem = unwritable(out, "--out", folder=True)
         if problem:
