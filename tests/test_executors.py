@@ -413,17 +413,41 @@ def test_a_missing_kernel_cache_is_announced_and_compiled_before_any_job(tmp_pat
     from pipeline.experiment import warmup
     from pipeline.experiment.sweep import run_sweep
     monkeypatch.setattr(warmup, "kernels_cached", lambda: False)  # as on a fresh machine
+    parts = []
+    monkeypatch.setattr(warmup, "_run_parts", lambda say: parts.append(say))  # the parts: tested below
+    monkeypatch.setattr(warmup.os, "sched_getaffinity", lambda pid: {0, 1})
     summary = run_sweep(composed(["experiment=debug", *TINY, "method=[random]", "executor=local",
                                   "tracking=none", f"output_dir={tmp_path}"]))
     lines = capsys.readouterr().out.splitlines()
     start = next(i for i, ln in enumerate(lines) if "compiling the CPU kernels for this machine, once" in ln)
     done = next(i for i, ln in enumerate(lines) if "compiled the CPU kernels in " in ln)
     first_job = next(i for i, ln in enumerate(lines) if "random on generated" in ln)
-    assert start < done < first_job and summary.finished == 1
+    assert start < done < first_job and summary.finished == 1 and len(parts) == 1
+    assert "2 parts at once" in lines[done]
     monkeypatch.setattr(warmup, "kernels_cached", lambda: True)
     run_sweep(composed(["experiment=debug", *TINY, "method=[coverage]", "executor=local", "tracking=none",
                         f"output_dir={tmp_path / 'again'}"]))
     assert "compiling the CPU kernels" not in capsys.readouterr().out  # cached: nothing said, nothing run
+
+
+@pytest.mark.parametrize("part", ["training", "selection"])
+def test_each_part_of_the_parallel_compile_runs_on_its_own(part, monkeypatch):
+    """The parallel compile's workers (``warmup --part NAME``) each run their paths (here from the
+    cache); a part that failed would only be said and leave its kernels to the episode."""
+    from pipeline.experiment import warmup
+    ran = []
+    original = warmup.PARTS[part]
+    monkeypatch.setitem(warmup.PARTS, part, lambda: ran.append(part) or original())
+    assert warmup.main(["--part", part]) == 0 and ran == [part]
+
+
+def test_a_failed_part_is_said_and_the_rest_goes_on(monkeypatch):
+    from pipeline.experiment import warmup
+    said = []
+    monkeypatch.setattr(warmup.sys, "executable", "false")  # every worker exits 1
+    warmup._run_parts(said.append)
+    assert said == [f"the kernels' {name} part failed (exit 1); the episode compiles what it left"
+                    for name in warmup.PARTS]
 
 
 def test_the_eta_comes_from_the_first_round_before_any_job_finishes(capsys):
