@@ -28,6 +28,7 @@ from pipeline.experiment.provenance import code_version
 from pipeline.experiment.schema import config_problems
 from pipeline.experiment.spec import RESULTS_REVISION, Job, config_hash
 from pipeline.experiment.splat_section import job_form
+from pipeline.fit.config import dotted_leaves
 
 # protocol/splat: overrides for this method; world: this method's capture simulator (gopre_search)
 METHOD_KEYS = {"strategy", "options", "protocol", "splat", "world"}
@@ -103,19 +104,9 @@ def seeds_of(value: object) -> list[int]:
     return seeds
 
 
-def _leaves(tree: dict, prefix: str = "") -> dict[str, object]:
-    out: dict[str, object] = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_leaves(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
 def sweep_axes(sweep: dict) -> list[dict]:
     """Sweep axes: every list leaf of ``sweep`` (nested like the job, e.g. sweep.protocol.probes)."""
-    leaves = _leaves(sweep)
+    leaves = dotted_leaves(sweep)
     for key, values in leaves.items():
         if not isinstance(values, list) or not values:
             raise ConfigError(f"sweep.{key}: expected a non-empty list of values, got {values!r}")

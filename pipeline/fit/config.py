@@ -105,7 +105,7 @@ class FitConfig:
 
     def flat(self) -> dict[str, object]:
         """Every hyperparameter as ``dotted.name -> value`` (what ``with_overrides`` accepts)."""
-        return _flat(asdict(self), "")
+        return dotted_leaves(asdict(self))
 
     def first_iterations(self, iterations: int) -> "FitConfig":
         """The first ``iterations`` steps of this recipe, schedules unchanged: densification,
@@ -171,11 +171,12 @@ def _typed(name: str, current, value, annotation: str):
     raise ValueError(f"{name}: expected {type(current).__name__}, got {value!r}")
 
 
-def _flat(data: dict, where: str) -> dict[str, object]:
-    out = {}
+def dotted_leaves(data: dict, where: str = "") -> dict[str, object]:
+    """A nested mapping's leaves by dotted key (``{"lr": {"sh0": 1}}`` -> ``{"lr.sh0": 1}``)."""
+    out: dict[str, object] = {}
     for key, value in data.items():
         if isinstance(value, dict):
-            out.update(_flat(value, f"{where}{key}."))
+            out.update(dotted_leaves(value, f"{where}{key}."))
         else:
             out[f"{where}{key}"] = value
     return out
