@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml requirements.lock
 	# gopre itself without resolving anything again.
 	$(BIN)/pip install -q -r requirements.lock
 	$(BIN)/pip install -q --no-deps -e .
-	# Compile the CPU kernels once into numba's cache beside the sources (2-3 min on 2 cores), so the
+	# Compile the CPU kernels once into numba's cache beside the sources (about 2 min on 2 cores, two parts at once), so the
 	# first sweep starts at once and the test suite's workers do not each compile them.
 	$(BIN)/python -m pipeline.experiment.warmup
 	touch $(STAMP)
