@@ -193,16 +193,12 @@ class MethodStrategies:
                 raise ConfigError(f"method.{job.method}: {err}") from None
         return self._built[key]
 
-    @property
-    def builds(self) -> int:
-        return len(self._built)
 
-
-def validate_job(job: Job, strategies: MethodStrategies | None = None) -> None:
+def validate_job(job: Job, strategies: MethodStrategies) -> None:
     """A job that cannot run is a config error naming the key: its episode config (resolved here,
     once, and kept), its strategy's options, a pose search without a strategy that scores any pose."""
     job.episode  # resolved once here, at start-up; a bad value is a config error naming the key
-    strategy = (strategies or MethodStrategies())(job)
+    strategy = strategies(job)
     if job.world is not None and not scores_any_pose(strategy):
         raise ConfigError(f"method.{job.method}: world={job.world['kind']} searches poses off the pool, which "
                           f"needs a strategy that scores any camera ({', '.join(POSE_SCORING)}); {job.strategy!r} "
@@ -216,13 +212,14 @@ def resolve_jobs(config: dict) -> list[Job]:
     deterministic order (the config's)."""
     sweep = SweepSections.of(config)
     plugins = strategy_plugins(sweep.methods)
+    for mname, method in sweep.methods.items():
+        check_keys(f"method.{mname}", method, METHOD_KEYS)
     strategies = MethodStrategies()
     jobs: list[Job] = []
     digests, fingerprints = FileDigests(), {}
     version = code_version()
     for (dname, dset), (mname, method), seed, axes in itertools.product(
             sweep.datasets.items(), sweep.methods.items(), sweep.seeds, sweep.axes):
-        check_keys(f"method.{mname}", method, METHOD_KEYS)
         for scene in dset["scenes"]:
             job = _plain_job(sweep, dname, dset, scene, mname, method, int(seed), axes)
             if plugins[mname] is not None:  # the plugin's code is part of what the job computes

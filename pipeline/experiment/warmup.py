@@ -89,9 +89,9 @@ def compile_kernels(say: Callable[[str], None], cores: int | None = None) -> flo
     say(f"compiling the CPU kernels for this machine, once ({EXPECTED_WAIT}; cached for every later run) ...")
     if load() is None:
         return None
-    cores = len(os.sched_getaffinity(0)) if cores is None else cores
+    parallel = (len(os.sched_getaffinity(0)) if cores is None else cores) >= 2
     start = time.perf_counter()
-    if cores >= 2:
+    if parallel:
         _run_parts(say)
     parts, compiling = time.perf_counter() - start, compile_seconds()
     _tiny_episode("gopre")
@@ -99,7 +99,7 @@ def compile_kernels(say: Callable[[str], None], cores: int | None = None) -> flo
     left = compile_seconds() - compiling
     say(f"compiled the CPU kernels in {seconds:.0f} s (" +
         (f"{len(PARTS)} parts at once {parts:.0f} s, then the episode compiled {left:.0f} s of what they left)"
-         if cores >= 2 else f"{left:.0f} s of it numba's)"))
+         if parallel else f"{left:.0f} s of it numba's)"))
     return seconds
 
 
