@@ -34,6 +34,18 @@ def _threads(request):
     yield
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _scene_cache(tmp_path_factory):
+    """One cache of generated scenes for the whole run (``GOPRE_SCENE_CACHE``), shared by pytest-xdist's
+    workers and the processes the tests start: each tiny scene is ray-cast once, not in every test that
+    runs a sweep (8 s each). A cache already set by hand is kept; a test of the uncached path unsets it."""
+    from pipeline.data.generated_cache import CACHE_ENV
+    root = tmp_path_factory.getbasetemp()
+    run_root = root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root  # pytest-N: this run's
+    os.environ.setdefault(CACHE_ENV, str(run_root / "scene_cache"))
+    yield
+
+
 @pytest.fixture(scope="module")
 def ray_session():
     """A local Ray instance of 2 CPUs for the module's tests (Ray's own, started and stopped here)."""

@@ -359,14 +359,14 @@ def generate(out: str | Path, seed: int = 0, size: int = 100, n_train: int = 100
     with open(out / "scene.json", "w") as f:
         json.dump({"generator": "pipeline.data.synthetic", "version": VERSION, "seed": seed,
                    "size": size, "rich_side_azimuth_deg": 0.0, "up": [0, 0, 1]}, f, indent=1)
-    _move_into_place(out, final)
+    move_into_place(out, final)
     return final
 
 
 SCENE_FILES = ("scene.json", "transforms_train.json", "transforms_test.json")
 
 
-def _move_into_place(written: Path, final: Path) -> None:
+def move_into_place(written: Path, final: Path) -> None:
     """Rename the written scene to ``final``. If ``final`` already holds the same scene (another
     process generated it meanwhile: the scene is a function of its settings) the copy is dropped;
     a different scene or anything else there is replaced."""

@@ -15,7 +15,8 @@ from omegaconf import OmegaConf
 from pipeline.data.load import load_scene
 from pipeline.active.plan import EpisodePlan
 from pipeline.data.scene import Scene
-from pipeline.data.synthetic import at_fraction, generate
+from pipeline.data.generated_cache import cache_from_environment, place_generated
+from pipeline.data.synthetic import GeneratedScene, at_fraction
 from pipeline.experiment.episode_settings import ConfigError
 from pipeline.experiment.console import console
 from pipeline.experiment.executors import scene_key
@@ -58,11 +59,12 @@ def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
         seen.add(key)
         path = Path(job.scene_path).resolve()
         if job.generate and not (path / "transforms_test.json").exists():
-            options = job.generate
-            LOG.info(f"generating the default scene into {path} ...")
-            generate(path, seed=options.get("seed", 0), size=options.get("size", 100),
-                     n_train=options.get("n_train", 100), n_test=options.get("n_test", 200),
-                     progress=every_quarter)
+            options, cache = job.generate, cache_from_environment()
+            LOG.info(f"generating the default scene into {path} ..." if cache is None else
+                     f"the default scene into {path}, from the scene cache {cache} ...")
+            settings = GeneratedScene(seed=options.get("seed", 0), size=options.get("size", 100),
+                                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
+            place_generated(path, settings, cache, progress=every_quarter)
         try:
             scene = load_scene(path, width=job.episode.fit.image_width, masks=job.masks)
         except Exception as err:
