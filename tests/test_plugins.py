@@ -18,11 +18,13 @@ from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve
 from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.episode_settings import ConfigError
 from pipeline.experiment.build import expand_jobs
+from tests.conftest import SMALL_GENERATED
 from tests.api_surface import surface
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "farthest_view"
-TINY = ["splat=tiny", "dataset=[generated]", "protocol.initial_views=2", "protocol.budget=3", "protocol.probes=3"]
+TINY = ["splat=tiny", "dataset=[generated]", *SMALL_GENERATED, "protocol.initial_views=2", "protocol.budget=3",
+        "protocol.probes=3"]
 
 
 def test_public_api_surface_is_unchanged():

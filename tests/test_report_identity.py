@@ -9,6 +9,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from pipeline.report.identity import MixedRowError, check_rows, identity_markdown, mixed_rows
+from tests.conftest import SMALL_GENERATED
 
 
 def _final(method="gopre", scene="bonsai", seed=0, code="aaa", data="f1", **extra):
@@ -75,7 +76,7 @@ def test_a_plugin_edited_between_runs_is_refused_by_the_report(tmp_path, monkeyp
         (tmp_path / "my_lowest.py").write_text(textwrap.dedent(PLUGIN.format(offset=offset)))
         monkeypatch.delitem(__import__("sys").modules, "my_lowest", raising=False)
         with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-            cfg = compose("config", ["splat=tiny", "dataset=[generated]", "protocol.initial_views=2",
+            cfg = compose("config", ["splat=tiny", "dataset=[generated]", *SMALL_GENERATED, "protocol.initial_views=2",
                                      "protocol.budget=3", "protocol.probes=2", "executor=local", "tracking=none",
                                      f"output_dir={tmp_path / 'out'}", f"hydra.searchpath=[file://{tmp_path}/conf]",
                                      "method=[mine]"])

@@ -12,6 +12,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from pipeline.acquisition.validation import RoundAsk, SelectionError, check_selection, selection_problem
+from tests.conftest import SMALL_GENERATED
 
 ASK = RoundAsk("mine", 2, 2, candidate_ids=(3, 5, 8, 13), taken_ids=(0, 1))
 SCORES = {3: 0.1, 5: 0.2, 8: math.inf, 13: -1.0}  # an infinite score is a rank (COVER's +inf), not a fault
@@ -105,7 +106,7 @@ def misbehaving_sweep(tmp_path_factory):
     sys.path.insert(0, str(root))
     try:
         with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-            cfg = compose("config", ["splat=tiny", "dataset=[generated]", "protocol.initial_views=2",
+            cfg = compose("config", ["splat=tiny", "dataset=[generated]", *SMALL_GENERATED, "protocol.initial_views=2",
                                      "protocol.budget=4", "protocol.probes=3", "executor=local", "tracking=none",
                                      "job.retries=2", f"output_dir={root / 'out'}", f"hydra.searchpath=[file://{root}/conf]",
                                      f"method=[random,{','.join(CASES)}]"])

@@ -7,11 +7,13 @@ from hydra import compose, initialize_config_dir
 from pipeline.cli.run import CONF_DIR
 from pipeline.experiment.records import RecordsFile
 from pipeline.experiment.sweep import run_sweep
+from tests.conftest import SMALL_GENERATED
 
 
 def _cfg(out, store, more=()):
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        return compose("config", ["splat=tiny", "dataset=[generated]", "protocol.initial_views=2", "protocol.budget=3",
+        return compose("config", ["splat=tiny", "dataset=[generated]", *SMALL_GENERATED, "protocol.initial_views=2",
+                                  "protocol.budget=3",
                                   "protocol.probes=2", "executor=local", "tracking=mlflow", f"tracking.uri={store}",
                                   "method=[random]", "seeds=[0]", "job.round_images=0", f"output_dir={out}", *more])
 
