@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from pipeline.fit.adam import FusedAdam
 from pipeline.fit.config import DensifyConfig
 from pipeline.splat.gaussians import quat_to_rotmat
 
@@ -39,7 +40,7 @@ class DensifyStats:
         return self.grad_sum / self.count.clamp_min(1)
 
 
-def remap(params: dict[str, Tensor], optimizer: torch.optim.Optimizer, keep: Tensor,
+def remap(params: dict[str, Tensor], optimizer: FusedAdam, keep: Tensor,
           new: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
     """Keep rows ``keep`` ([N] bool) of every parameter, append ``new`` rows, remap Adam state."""
     out = {}
@@ -70,7 +71,7 @@ def _select_under_cap(grads: Tensor, candidates: Tensor, cost: Tensor, room: int
     return chosen
 
 
-def densify_and_prune(params: dict[str, Tensor], optimizer: torch.optim.Optimizer,
+def densify_and_prune(params: dict[str, Tensor], optimizer: FusedAdam,
                       stats: DensifyStats, cfg: DensifyConfig, extent: float, prune_large: bool,
                       generator: torch.Generator | None = None) -> dict[str, Tensor]:
     """One 3DGS densification step; returns the new parameter dict (optimizer updated)."""
@@ -112,7 +113,7 @@ def densify_and_prune(params: dict[str, Tensor], optimizer: torch.optim.Optimize
     return remap(params, optimizer, ~drop)
 
 
-def reset_opacity(params: dict[str, Tensor], optimizer: torch.optim.Optimizer,
+def reset_opacity(params: dict[str, Tensor], optimizer: FusedAdam,
                   value: float) -> dict[str, Tensor]:
     """Clamp every opacity to at most ``value`` and zero its Adam moments (3DGS opacity reset)."""
     old = params["logit_opacities"]

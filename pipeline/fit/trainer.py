@@ -22,6 +22,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from pipeline.cameras import Cameras
+from pipeline.fit.adam import FusedAdam
 from pipeline.fit.config import FitConfig
 from pipeline.fit.densify import DensifyStats, densify_and_prune, reset_opacity
 from pipeline.fit.fused_step import StepGradients, fused_step_gradients
@@ -92,10 +93,9 @@ class Trainer:
         lr = config.lr
         rates = {"means": lr.means_init * self.extent, "log_scales": lr.log_scales, "quats": lr.quats,
                  "logit_opacities": lr.logit_opacities, "sh0": lr.sh0, "shN": lr.shN}
-        # fused: one kernel per parameter group instead of ~10 small ops (same update rule)
-        self.optimizer = torch.optim.Adam(
-            [{"params": [p], "lr": rates[k], "name": k} for k, p in self.params.items()], eps=1e-15,
-            fused=True)
+        # torch's fused Adam kernel, one call per parameter group, without torch.optim (pipeline/fit/adam.py)
+        self.optimizer = FusedAdam([{"params": [p], "lr": rates[k], "name": k} for k, p in self.params.items()],
+                                   eps=1e-15)
         self.stats = DensifyStats.zeros(len(gaussians), images)
         self._order: list[int] = []
         self.set_views(cameras, images, masks)
