@@ -24,9 +24,15 @@ TEST_THREADS = int(os.environ.get("GOPRE_TEST_THREADS", share_of_cores()))
 # The processes the tests start (gopre-run, `ray start` nodes, servers) get the same share: torch's
 # default, a thread per core, beside the other worker costs a tiny scene's ray casting 12x its
 # one-thread time (0.43 against 0.037 s a 32 px view, 2026-12-07, beside a 2-job sweep). A value
-# set by hand is kept.
+# set by hand is kept; one this file set (pytest-xdist's controller, whose share is the whole machine,
+# before it starts the workers, which inherit its environment) is each worker's own share.
+_SET_BY_CONFTEST = "GOPRE_TEST_SET_THREAD_VARS"  # the names this file set, comma-separated
+_ours = set(filter(None, os.environ.get(_SET_BY_CONFTEST, "").split(",")))
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, str(TEST_THREADS))
+    if _var not in os.environ or _var in _ours:
+        os.environ[_var] = str(TEST_THREADS)
+        _ours.add(_var)
+os.environ[_SET_BY_CONFTEST] = ",".join(sorted(_ours))
 
 
 @pytest.fixture(autouse=True)

@@ -2,8 +2,8 @@
 ``torch.optim.Adam(fused=True)`` runs), called directly, one parameter per group.
 
 Why not ``torch.optim.Adam`` itself: its constructor, ``step`` and ``state_dict`` are wrapped to
-keep TorchDynamo out, and the wrapper imports ``torch._dynamo`` on first use: 3.5 s and 71 MB in
-every process that trains (each sweep worker, each test that starts one), for a compiler the CPU
+keep TorchDynamo out, and the wrapper imports ``torch._dynamo`` on first use: about 2 s (3.5 s beside
+a sweep) and 70 MB in every process that trains (each sweep worker, each test that starts one), for a compiler the CPU
 path never uses. The update is the same kernel with the same arguments in the same order, so the
 parameters and moments are bit-identical to ``torch.optim.Adam(..., fused=True)``'s (tested against
 it step by step, through the density control's remaps); ``state_dict`` has torch's layout, so a
