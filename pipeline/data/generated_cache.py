@@ -15,7 +15,7 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-from dataclasses import astuple
+from dataclasses import asdict, astuple
 from importlib import metadata
 from pathlib import Path
 from typing import Callable
@@ -52,10 +52,10 @@ def place_generated(target: str | Path, settings: GeneratedScene, cache: Path | 
     """The generated scene of ``settings`` at ``target``: copied from ``cache`` (generated into it
     first when absent), or generated at ``target`` when ``cache`` is None."""
     if cache is None:
-        return generate(target, **_arguments(settings), progress=progress)
+        return generate(target, **asdict(settings), progress=progress)
     kept = cache / cache_key(settings)
     if not (kept / "transforms_test.json").is_file():  # generate() renames a finished scene into place
-        generate(kept, **_arguments(settings), progress=progress)
+        generate(kept, **asdict(settings), progress=progress)
     final = Path(target)
     partial = final.parent / f".{final.name}.copy-{os.getpid()}"
     if partial.exists():
@@ -65,6 +65,3 @@ def place_generated(target: str | Path, settings: GeneratedScene, cache: Path | 
     move_into_place(partial, final)
     return final
 
-
-def _arguments(settings: GeneratedScene) -> dict[str, int]:
-    return {"seed": settings.seed, "size": settings.size, "n_train": settings.n_train, "n_test": settings.n_test}

@@ -62,9 +62,8 @@ def prepare_scenes(jobs: list[Job]) -> tuple[dict[str, Scene], list[str]]:
             options, cache = job.generate, cache_from_environment()
             LOG.info(f"generating the default scene into {path} ..." if cache is None else
                      f"the default scene into {path}, from the scene cache {cache} ...")
-            settings = GeneratedScene(seed=options.get("seed", 0), size=options.get("size", 100),
-                                      n_train=options.get("n_train", 100), n_test=options.get("n_test", 200))
-            place_generated(path, settings, cache, progress=every_quarter)
+            # the section's keys are GeneratedScene's fields (checked by the schema); unset ones keep its defaults
+            place_generated(path, GeneratedScene(**options), cache, progress=every_quarter)
         try:
             scene = load_scene(path, width=job.episode.fit.image_width, masks=job.masks)
         except Exception as err:
