@@ -46,12 +46,26 @@ def test_config_hash_changes_with_anything_computed():
         assert first_job(override).config_hash != base, override
 
 
-def test_config_hash_golden_value():
+def test_config_hash_golden_value(monkeypatch):
     """Pinned: a change here means every finished job of every existing sweep would be rerun (or
     a changed job skipped). Update it only on purpose, and say so in the change.
     Changed on purpose for results revision "fidelity-1" (issue 26; was 5b06dfba81dfd51f): the
-    fidelity fixes change what every job computes, so no result of the code before them is reused."""
-    assert first_job().config_hash == "5a8deb5236736840"
+    fidelity fixes change what every job computes, so no result of the code before them is reused.
+    Changed on purpose on 2026-12-07 (issue 55; was 5a8deb5236736840): the generated scene's data
+    identity (its options and its generator) entered the hash, so a generated sweep recorded before
+    re-runs once. The generator's own identity (its source, the libraries' versions) is pinned here,
+    so this value pins the hashing, and an edit of the generator fails the test below instead."""
+    import pipeline.data.fingerprint as fp
+    monkeypatch.setattr(fp, "generator_identity", lambda: "0" * 16)
+    assert first_job().config_hash == "7f2507b531cdad48"
+
+
+def test_the_generators_identity_is_part_of_the_generated_jobs_hash(monkeypatch):
+    import pipeline.data.fingerprint as fp
+    base = first_job()
+    assert base.generate is not None and base.data_fingerprint.startswith("generated-")
+    monkeypatch.setattr(fp, "generator_identity", lambda: "1" * 16)
+    assert first_job().config_hash != base.config_hash
 
 
 def test_any_fit_hyperparameter_can_be_overridden_and_is_part_of_the_hash():

@@ -194,3 +194,36 @@ def test_a_node_holding_another_copy_of_the_data_refuses_the_job(small_scene, tm
                                         rf"the driver's has {job.data_fingerprint}"):
         check_data_identity(job)
     check_data_identity(replace(job, data_fingerprint=""))  # a job made before data identity: nothing to check
+
+
+def _generated_cfg(tmp_path):
+    from pipeline.cli.run import CONF_DIR
+    from tests.conftest import SMALL_GENERATED
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose("config", ["experiment=debug", "splat=tiny", *SMALL_GENERATED, "protocol.initial_views=2",
+                                  "protocol.budget=3", "protocol.probes=2", "executor=local", "tracking=none",
+                                  "method=[random]", "seeds=[0]", f"output_dir={tmp_path / 'out'}"])
+
+
+def test_an_edited_generator_is_changed_data_for_the_generated_scene(tmp_path, monkeypatch, capsys):
+    """The generated scene has no files to hash before it is cast: its identity is its options and its
+    generator, so a relaunch after the generator changed re-runs its jobs and says so."""
+    from pipeline.experiment.records import RecordsFile
+    from pipeline.experiment.sweep import run_sweep
+    first = run_sweep(_generated_cfg(tmp_path))
+    assert first.finished == 1
+    before = RecordsFile(tmp_path / "out").frame["data_fingerprint"].iloc[0]
+    assert before == fp.generated_fingerprint(first_generate(tmp_path)) and before.startswith("generated-")
+    assert run_sweep(_generated_cfg(tmp_path)).skipped == 1  # the same generator: finished
+    capsys.readouterr()
+    monkeypatch.setattr(fp, "generator_identity", lambda: "e" * 16)  # as an edit of synthetic.py would
+    again = run_sweep(_generated_cfg(tmp_path))
+    now = fp.generated_fingerprint(first_generate(tmp_path))
+    assert again.skipped == 0 and again.finished == 1 and now != before
+    assert f"data changed: dataset.generated scene 'generated' is now {now} (was {before})" in capsys.readouterr().out
+
+
+def first_generate(tmp_path) -> dict:
+    from pipeline.experiment.build import expand_jobs
+    (job,) = expand_jobs(_generated_cfg(tmp_path))
+    return job.generate

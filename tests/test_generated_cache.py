@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
+import pipeline.data.fingerprint as fp
 import pipeline.data.generated_cache as gc
 from pipeline.data.fingerprint import scene_fingerprint
+from pipeline.data import synthetic
 from pipeline.data.synthetic import GeneratedScene, generate
 
 SMALL = GeneratedScene(seed=1, size=16, n_train=3, n_test=2)
@@ -52,14 +54,15 @@ def test_other_settings_are_another_entry(tmp_path, counted):
 
 def test_the_key_follows_the_generators_source_and_the_libraries(tmp_path, monkeypatch):
     before = gc.cache_key(SMALL)
+    assert fp.generator_source() == Path(synthetic.__file__)  # the file read is the generator's
     edited = tmp_path / "synthetic.py"
-    edited.write_bytes(Path(gc.synthetic.__file__).read_bytes() + b"\n# one more line\n")
-    monkeypatch.setattr(gc.synthetic, "__file__", str(edited))
+    edited.write_bytes(fp.generator_source().read_bytes() + b"\n# one more line\n")
+    monkeypatch.setattr(fp, "generator_source", lambda: edited)
     assert gc.cache_key(SMALL) != before
     monkeypatch.undo()
     assert gc.cache_key(SMALL) == before
-    real_version = gc.metadata.version
-    monkeypatch.setattr(gc.metadata, "version", lambda name: "0.0" if name == "Pillow" else real_version(name))
+    real_version = fp.metadata.version
+    monkeypatch.setattr(fp.metadata, "version", lambda name: "0.0" if name == "Pillow" else real_version(name))
     assert gc.cache_key(SMALL) != before
 
 

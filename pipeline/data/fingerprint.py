@@ -8,6 +8,10 @@ What a reader reads, per format (the sources, listed without decoding an image):
 | blender | ``transforms_{train,val,test}.json`` | every frame those files name |
 | nerfstudio | ``transforms.json`` | every frame's ``file_path`` (and ``mask_path`` when read), ``ply_file_path`` |
 
+The generated scene has no files until it is cast: its identity is its options and the generator that
+makes its files from them (``generated_fingerprint``: the generator's source and the versions of the
+libraries behind its pixels), so a changed generator is other data, as a changed file is.
+
 The digest is the sha256 of the lines ``<path relative to the scene folder>\\t<sha256 of the file>``
 in path order, so the same bytes at another path (another node's mount, a copied folder) give the
 same fingerprint and any changed, added or removed file gives another. A file's sha256 is cached by
@@ -18,9 +22,11 @@ launch does not re-read a large scene whose files did not change.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 
 from pipeline.data.images import DataError
@@ -29,6 +35,8 @@ from pipeline.interchange.hashes import file_sha256
 MODEL_STEMS = ("cameras", "images", "points3D", "rigs", "frames")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 SHOWN = 16  # hex digits of a fingerprint that jobs, records, tags and tables carry
+GENERATOR = "pipeline.data.synthetic"  # the module that casts the generated scene
+GENERATOR_LIBRARIES = ("torch", "scikit-image", "Pillow", "numpy")  # what computes and encodes its pixels
 
 
 @dataclass(frozen=True)
@@ -178,7 +186,32 @@ def scene_fingerprint(root: str | Path, masks: bool = False, digests: FileDigest
     return DataFingerprint(digest, len(lines), total)
 
 
-def generated_fingerprint(options: dict) -> str:
-    """The generated scene's identity: its generator's options (the files are made from them)."""
+def generator_source() -> Path:
+    """The scene generator's source file, found without importing it (no torch here)."""
+    spec = importlib.util.find_spec(GENERATOR)
+    if spec is None or spec.origin is None:
+        raise DataError(f"{GENERATOR}: the scene generator's source cannot be found (a broken install)")
+    return Path(spec.origin)
+
+
+def generator_identity() -> str:
+    """A digest of the scene generator's source and of the versions of the libraries behind its bytes."""
+    digest = hashlib.sha256(generator_source().read_bytes())
+    for name in GENERATOR_LIBRARIES:
+        digest.update(f"{name}={metadata.version(name)}".encode())
+    return digest.hexdigest()[:16]
+
+
+def generated_fingerprint(options: dict | None, generator: str | None = None) -> str:
+    """The generated scene's data identity: its options and the generator that makes its files from
+    them (``generator_identity()`` unless given)."""
+    text = json.dumps({"options": options or {}, "generator": generator or generator_identity()},
+                      sort_keys=True, default=str)
+    return "generated-" + hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def options_identity(options: dict | None) -> str:
+    """What a generated job made before the generator entered its identity named as its data: the
+    options alone (its records and result files carry this form)."""
     text = json.dumps(options or {}, sort_keys=True, default=str)
     return "generated-" + hashlib.sha256(text.encode()).hexdigest()[:12]

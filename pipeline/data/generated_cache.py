@@ -12,33 +12,22 @@ cost 8 s of ray casting in every test that ran a sweep.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 from dataclasses import asdict, astuple
-from importlib import metadata
 from pathlib import Path
 from typing import Callable
 
-from pipeline.data import synthetic
+from pipeline.data.fingerprint import generator_identity
 from pipeline.data.synthetic import GeneratedScene, generate, move_into_place
 
 CACHE_ENV = "GOPRE_SCENE_CACHE"
-LIBRARIES = ("torch", "scikit-image", "Pillow", "numpy")
 
 
 def cache_from_environment() -> Path | None:
     """The cache folder ``GOPRE_SCENE_CACHE`` names, or None (no cache) when it is unset or empty."""
     value = os.environ.get(CACHE_ENV, "").strip()
     return Path(value) if value else None
-
-
-def generator_identity() -> str:
-    """A digest of the generator's source and the versions of the libraries behind its bytes."""
-    digest = hashlib.sha256(Path(synthetic.__file__).read_bytes())
-    for name in LIBRARIES:
-        digest.update(f"{name}={metadata.version(name)}".encode())
-    return digest.hexdigest()[:16]
 
 
 def cache_key(settings: GeneratedScene) -> str:

@@ -20,7 +20,7 @@ from pipeline.acquisition import POSE_SCORING, REGISTRY as BUILT_IN, make_strate
 from pipeline.acquisition.base import Strategy
 from pipeline.acquisition.discovery import StrategyError, check_plugins, resolve_strategy
 from pipeline.bounds import BoundsError
-from pipeline.data.fingerprint import FileDigests, scene_fingerprint
+from pipeline.data.fingerprint import FileDigests, generated_fingerprint, scene_fingerprint
 from pipeline.data.images import DataError
 from pipeline.experiment.episode_settings import ConfigError, check_keys, uncertainty_config, world_section
 from pipeline.experiment.layout import SweepFolder
@@ -133,11 +133,11 @@ def _set_dotted(job: dict, dotted: str, value) -> None:
 
 def data_fingerprint(scene_path: str, generate: dict | None, masks: bool, digests: FileDigests) -> str:
     """The scene's data identity for a job's hash (``pipeline.data.fingerprint``): the digest of its
-    files; "" for the generated scene, whose generator options the hash holds already (so generated
-    sweeps keep their hashes); ``MISSING_DATA`` when the folder cannot be read (the pre-flight check
-    then names the problem)."""
-    if generate is not None:  # its options are in the hash already (Job.data_identity names them)
-        return ""
+    files; for the generated scene, its options and its generator's identity (the files are made from
+    them, so an edited generator is other data); ``MISSING_DATA`` when the folder cannot be read (the
+    pre-flight check then names the problem)."""
+    if generate is not None:
+        return generated_fingerprint(generate)
     try:
         return scene_fingerprint(scene_path, masks, digests).short
     except (DataError, OSError):
@@ -227,8 +227,7 @@ def resolve_jobs(config: dict) -> list[Job]:
             data_key = (job["scene_path"], json.dumps(job["generate"], sort_keys=True), bool(job.get("masks")))
             if data_key not in fingerprints:  # each scene's files hashed once per launch (and cached on disk)
                 fingerprints[data_key] = data_fingerprint(job["scene_path"], job["generate"], data_key[2], digests)
-            if fingerprints[data_key]:  # absent for the generated scene: its hash as before
-                job["data_fingerprint"] = fingerprints[data_key]
+            job["data_fingerprint"] = fingerprints[data_key]
             job["config_hash"] = config_hash(job)
             job["execution"] = _execution(sweep, job["config_hash"])
             job["index"] = len(jobs)  # the order the config lists things in (tables keep it)

@@ -70,9 +70,9 @@ class Job:
     # version, source_sha256), part of the hash so a changed plugin is re-run; None for a built-in
     plugin: dict | None = None
     masks: bool = False              # the dataset's masks: training and evaluation ignore masked-out pixels
-    # the scene's data identity (``pipeline.data.fingerprint``): part of the hash, so changed data is
-    # re-run; "" for the generated scene (its generator's options, in the hash already, make its files)
-    # and for a job made before data identity (its hash is the old one)
+    # the scene's data identity (``pipeline.data.fingerprint``): part of the hash, so changed data (an
+    # edited generator, for the generated scene) is re-run; "" for a job made before data identity
+    # (its hash is the old one)
     data_fingerprint: str = ""
 
     def to_dict(self) -> dict:
@@ -110,13 +110,14 @@ class Job:
 
     @property
     def data_identity(self) -> str | None:
-        """What the records, tags and result files name as the job's data: the fingerprint, the
-        generated scene's options digest, or None (a job made before data identity)."""
+        """What the records, tags and result files name as the job's data: the fingerprint, or for a
+        generated job made before the generator entered it the digest of its options (what its records
+        name), or None (a job made before data identity)."""
         if self.data_fingerprint:
             return self.data_fingerprint
         if self.generate is not None:
-            from pipeline.data.fingerprint import generated_fingerprint
-            return generated_fingerprint(self.generate)
+            from pipeline.data.fingerprint import options_identity
+            return options_identity(self.generate)
         return None
 
     @property
