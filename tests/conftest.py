@@ -1,5 +1,8 @@
+import json
 import os
+import resource
 import socket
+import time
 from pathlib import Path
 
 import pytest
@@ -107,3 +110,34 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if _starts_a_cluster(item):
             item.add_marker(pytest.mark.xdist_group("cluster"))
+
+
+# Where the suite's time goes, measured so that a loaded machine does not hide it:
+# GOPRE_TEST_RESOURCES=path appends one JSON line per test (setup, call and teardown together): its
+# wall seconds, the CPU seconds of its process and of the processes it started and reaped (a sweep's
+# driver, servers; a process left running, such as a Ray node's workers killed with it, is not
+# counted), its xdist worker and whether it is in the cluster chain. ``python tools/test_costs.py
+# path`` sums them. CPU seconds hardly depend on the load beside the run; wall seconds do.
+RESOURCE_LOG = os.environ.get("GOPRE_TEST_RESOURCES", "").strip()
+
+
+def _cpu_seconds() -> tuple[float, float]:
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    if not RESOURCE_LOG:
+        yield
+        return
+    own, children = _cpu_seconds()
+    start = time.perf_counter()
+    yield
+    wall = time.perf_counter() - start
+    own_after, children_after = _cpu_seconds()
+    line = {"test": item.nodeid, "wall_s": round(wall, 3), "cpu_s": round(own_after - own, 3),
+            "children_cpu_s": round(children_after - children, 3),
+            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "cluster": _starts_a_cluster(item)}
+    with open(RESOURCE_LOG, "a") as log:  # one short line per write: the workers' lines do not interleave
+        log.write(json.dumps(line) + "\n")

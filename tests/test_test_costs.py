@@ -1,0 +1,50 @@
+"""tools/test_costs.py and the per-test resource lines tests/conftest.py writes: the suite's floor is
+the longer of its CPU spread over the cores and the cluster chain's wall time; the costliest test is
+ranked by its own and its children's CPU."""
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("test_costs", ROOT / "tools" / "test_costs.py")
+costs = importlib.util.module_from_spec(spec)
+sys.modules["test_costs"] = costs  # its dataclass looks its module up
+spec.loader.exec_module(costs)
+
+
+def _line(test, wall, own, children, cluster=False):
+    return json.dumps({"test": test, "wall_s": wall, "cpu_s": own, "children_cpu_s": children,
+                       "worker": "gw0", "cluster": cluster})
+
+
+def test_the_floor_is_the_cpu_spread_or_the_chain_whichever_is_longer(tmp_path):
+    log = tmp_path / "c.jsonl"
+    log.write_text("\n".join([_line("a.py::x", 10, 100, 20), _line("b.py::y", 50, 1, 1, cluster=True),
+                              _line("b.py::z", 5, 30, 0)]) + "\n")
+    text = costs.summary(costs.read_costs(log), top=2, cores=2)
+    assert "3 tests, 152 CPU s" in text
+    assert "the suite's floor on 2 cores: 1.3 min" in text  # 152 / 2 = 76 s > the chain's 50 s
+    assert costs.summary(costs.read_costs(log), top=2, cores=4).count("floor on 4 cores: 0.8 min") == 1  # the chain
+    ranked = text.split("costliest 2 tests")[1].splitlines()[1:3]
+    assert "a.py::x" in ranked[0] and "b.py::z" in ranked[1]  # 120 (own + children) before 30
+
+
+def test_the_suite_writes_one_line_per_test_with_its_childrens_cpu(tmp_path):
+    """A test that spends CPU in a child process has it in children_cpu_s, not in its own."""
+    (tmp_path / "test_spin.py").write_text(
+        "import subprocess, sys\n"
+        "def test_child():\n"
+        "    subprocess.run([sys.executable, '-c', 'sum(range(30_000_000))'], check=True)\n"
+        "def test_nothing():\n"
+        "    pass\n")
+    (tmp_path / "conftest.py").write_text((ROOT / "tests" / "conftest.py").read_text())
+    log = tmp_path / "costs.jsonl"
+    env = {"GOPRE_TEST_RESOURCES": str(log), "PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)}
+    subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0", str(tmp_path)],
+                   check=True, env=env, cwd=tmp_path, capture_output=True)
+    lines = {c.test.split("::")[1]: c for c in costs.read_costs(log)}
+    assert set(lines) == {"test_child", "test_nothing"}
+    assert lines["test_child"].children_cpu_s > 0.2 > lines["test_nothing"].children_cpu_s
