@@ -1,7 +1,8 @@
 """Old beside new for one scene whose data changed: per method, the mean final PSNR (and its std over
 seeds) of a published report's runs (its runs.csv) and of a new sweep's records, with the difference.
 
-    python tools/restaged_comparison.py reports/paper/table2_goal_5seeds/runs.csv \
+    git show 3a7e471:reports/paper/table2_goal_5seeds/runs.csv > /tmp/old.csv
+    python tools/restaged_comparison.py /tmp/old.csv \
         outputs/table2_goal_bonsai --scene bonsai [--seeds 0,1,2,3,4]
 
 Prints a markdown table; the old and the new are different data (the scene was re-staged), so the
