@@ -1,4 +1,4 @@
-"""``pipeline-run ... plan=true``: the job table of a sweep, what is already finished, and an
+"""``gopre-run ... plan=true``: the job table of a sweep, what is already finished, and an
 estimated duration from the recorded durations of finished jobs of the same kind. Starts nothing:
 no Ray, no MLflow, no job folders.
 """

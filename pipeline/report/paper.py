@@ -4,7 +4,7 @@ that table (reproduced / not reproduced / not testable at this scale), with the 
 
 The paper's numbers live in ``paper_tables.yaml`` (copied from the paper's .tex, checked against it
 by a test). A sweep maps to a paper table by its name (``table1_global`` ...) or by an explicit
-table id (``pipeline-report outputs/science --paper table2_goal``: the study's goal-protocol runs
+table id (``gopre-report outputs/science --paper table2_goal``: the study's goal-protocol runs
 beside Table 2). Absolute numbers are not comparable at CPU scale (64 px, 2-5k iterations instead
 of 1066 x 1600 and 30k): the comparison that means something is the ordering and the paired gaps.
 """
@@ -116,7 +116,7 @@ def table_for(sweep: str, requested: str | None, tables: dict[str, PaperTable]) 
     key = requested or sweep
     if key not in tables:
         raise ValueError(f"--paper: sweep {sweep!r} maps to no paper table; name one of "
-                         f"{sorted(tables)} (pipeline-report <sweep> --paper table1_global)")
+                         f"{sorted(tables)} (gopre-report <sweep> --paper table1_global)")
     return tables[key]
 
 
