@@ -42,13 +42,12 @@ def paired_table(baseline: pd.DataFrame, other: pd.DataFrame) -> list[str]:
     new = other.groupby(["method", "seed"])["psnr"].mean()
     lines = ["| method | baseline | other | other − baseline (95% BCa) | higher / lower / level |",
              "|---|---|---|---|---|"]
+    pairs = pd.concat([base, new], axis=1, keys=["base", "new"]).dropna()  # (method, seed) both finished
     for method in dict.fromkeys(other["method"]):
-        has_baseline = method in base.index.get_level_values(0)
-        both = (pd.concat([base[method], new[method]], axis=1, keys=["base", "new"]).dropna()
-                if has_baseline else pd.DataFrame())
-        if both.empty:
+        if method not in pairs.index.get_level_values(0):
             lines.append(f"| {method} | n/a | {new[method].mean():.2f} | no pairs | |")
             continue
+        both = pairs.loc[method]
         diff = (both["new"] - both["base"]).to_numpy(dtype=float)
         low, high = bootstrap_interval(diff)
         higher, lower = int((diff > TIE_DB).sum()), int((diff < -TIE_DB).sum())

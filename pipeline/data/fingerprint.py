@@ -202,16 +202,18 @@ def generator_identity() -> str:
     return digest.hexdigest()[:16]
 
 
-def generated_fingerprint(options: dict | None, generator: str | None = None) -> str:
+def generated_fingerprint(options: dict | None) -> str:
     """The generated scene's data identity: its options and the generator that makes its files from
-    them (``generator_identity()`` unless given)."""
-    text = json.dumps({"options": options or {}, "generator": generator or generator_identity()},
-                      sort_keys=True, default=str)
-    return "generated-" + hashlib.sha256(text.encode()).hexdigest()[:12]
+    them (``generator_identity()``)."""
+    return _generated_digest({"options": options or {}, "generator": generator_identity()})
 
 
 def options_identity(options: dict | None) -> str:
     """What a generated job made before the generator entered its identity named as its data: the
     options alone (its records and result files carry this form)."""
-    text = json.dumps(options or {}, sort_keys=True, default=str)
+    return _generated_digest(options or {})
+
+
+def _generated_digest(payload: dict) -> str:
+    text = json.dumps(payload, sort_keys=True, default=str)
     return "generated-" + hashlib.sha256(text.encode()).hexdigest()[:12]
