@@ -36,10 +36,13 @@ demo: $(STAMP)
 	$(BIN)/gopre-run experiment=demo
 	$(BIN)/gopre-report outputs/demo --out reports/demo
 
-# The whole suite in one process per core (pytest-xdist); the tests that start clusters and servers
-# share one of them, one after another (tests/conftest.py, CLUSTER_MODULES).
+# The whole suite in pytest-xdist processes, one per core and one more: the tests that start Ray run
+# one after another in one of them, those that start servers and job arrays in another
+# (tests/conftest.py), and both chains mostly wait on the processes they start. Each process runs
+# its tests at one thread (its share of the cores).
+TEST_WORKERS ?= $(shell python3 -c 'import os; print(len(os.sched_getaffinity(0)) + 1)')
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n auto --dist loadgroup
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 # Every published digit re-run to its last digit: each episode of reports/reproduce/episodes.json
 # and the README's demo table, those the suite leaves out for their time (the full bonsai episode,

@@ -91,25 +91,40 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-# `make test` runs the suite in two processes (pytest-xdist, --dist loadgroup). The tests that start
-# clusters and servers (Ray, `ray start` nodes, PostgreSQL and MLflow servers, the driver subprocesses
-# they kill) run one after another in one process: Ray finds "the latest cluster on this machine", the
-# servers' ports and processes are the machine's, and two such tests side by side would see each other.
-CLUSTER_MODULES = {"test_ray_cluster", "test_interrupt", "test_tracking_server", "test_shared_tracking",
-                   "test_executors", "test_deploy"}
+# `make test` runs the suite in pytest-xdist processes (--dist loadgroup; the Makefile's TEST_WORKERS:
+# a process per core and one more, since the chains below mostly wait on the processes they start).
+# Two kinds of test run one after another, each kind in one process: those that start Ray (a sweep's
+# local Ray, `ray start` nodes, the driver subprocesses they kill: Ray's default node ports, such as
+# its dashboard agent's, are the machine's, and two Rays at once would take the same ones), and those
+# that start servers or job arrays of their own (PostgreSQL, MLflow servers, submitit's local
+# executor: processes and timings that a second such test beside them would disturb). The two chains
+# do not share anything, so they run beside each other.
+RAY_MODULES = {"test_ray_cluster", "test_interrupt"}
+SERVER_MODULES = {"test_tracking_server", "test_shared_tracking", "test_executors"}
+CLUSTER_MODULES = RAY_MODULES | SERVER_MODULES  # either chain (tools/test_costs.py reads the flag)
+
+
+def _chain(item: pytest.Item) -> str | None:
+    """The chain a test runs in ("ray" or "servers"), None for a test that runs anywhere."""
+    module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
+    if module in RAY_MODULES or "ray_session" in getattr(item, "fixturenames", ()):
+        return "ray"
+    if "executor=ray" in item.nodeid or "ray" in item.name.split("[")[0].split("_"):
+        return "ray"
+    if module in SERVER_MODULES:
+        return "servers"
+    return None
 
 
 def _starts_a_cluster(item: pytest.Item) -> bool:
-    module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
-    if module in CLUSTER_MODULES or "ray_session" in getattr(item, "fixturenames", ()):
-        return True
-    return "executor=ray" in item.nodeid or "ray" in item.name.split("[")[0].split("_")
+    return _chain(item) is not None
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
-        if _starts_a_cluster(item):
-            item.add_marker(pytest.mark.xdist_group("cluster"))
+        chain = _chain(item)
+        if chain is not None:
+            item.add_marker(pytest.mark.xdist_group(chain))
 
 
 # Where the suite's time goes, measured so that a loaded machine does not hide it:
@@ -138,6 +153,7 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     own_after, children_after = _cpu_seconds()
     line = {"test": item.nodeid, "wall_s": round(wall, 3), "cpu_s": round(own_after - own, 3),
             "children_cpu_s": round(children_after - children, 3),
-            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "cluster": _starts_a_cluster(item)}
+            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "cluster": _starts_a_cluster(item),
+            "chain": _chain(item)}
     with open(RESOURCE_LOG, "a") as log:  # one short line per write: the workers' lines do not interleave
         log.write(json.dumps(line) + "\n")

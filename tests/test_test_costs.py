@@ -15,9 +15,11 @@ sys.modules["test_costs"] = costs  # its dataclass looks its module up
 spec.loader.exec_module(costs)
 
 
-def _line(test, wall, own, children, cluster=False):
-    return json.dumps({"test": test, "wall_s": wall, "cpu_s": own, "children_cpu_s": children,
-                       "worker": "gw0", "cluster": cluster})
+def _line(test, wall, own, children, cluster=False, chain=None):
+    line = {"test": test, "wall_s": wall, "cpu_s": own, "children_cpu_s": children, "worker": "gw0", "cluster": cluster}
+    if chain is not None:
+        line["chain"] = chain
+    return json.dumps(line)
 
 
 def test_the_floor_is_the_cpu_spread_or_the_chain_whichever_is_longer(tmp_path):
@@ -48,3 +50,18 @@ def test_the_suite_writes_one_line_per_test_with_its_childrens_cpu(tmp_path):
     lines = {c.test.split("::")[1]: c for c in costs.read_costs(log)}
     assert set(lines) == {"test_child", "test_nothing"}
     assert lines["test_child"].children_cpu_s > 0.2 > lines["test_nothing"].children_cpu_s
+
+
+def test_the_floor_is_the_longest_of_two_chains_and_an_old_log_reads_as_one(tmp_path):
+    """Two chains run beside each other: the floor is the longer one, not their sum; a log written
+    before the chains had names counts its flagged tests as one chain, "cluster"."""
+    log = tmp_path / "c.jsonl"
+    log.write_text("\n".join([_line("r.py::a", 40, 1, 1, True, "ray"), _line("r.py::b", 30, 1, 1, True, "ray"),
+                              _line("s.py::c", 50, 1, 1, True, "servers"), _line("x.py::d", 1, 2, 0)]) + "\n")
+    text = costs.summary(costs.read_costs(log), top=4, cores=2)
+    assert "ray chain: 2 tests, 70 wall s" in text and "servers chain: 1 tests, 50 wall s" in text
+    assert "floor on 2 cores: 1.2 min" in text  # the ray chain's 70 s, not 120
+    assert "[servers]" in text and "[ray]" in text
+    old = tmp_path / "old.jsonl"
+    old.write_text(_line("r.py::a", 40, 1, 1, True) + "\n" + _line("x.py::d", 1, 2, 0) + "\n")
+    assert "cluster chain: 1 tests, 40 wall s" in costs.summary(costs.read_costs(old), top=2, cores=2)

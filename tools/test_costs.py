@@ -1,8 +1,8 @@
 """Where the test suite's time goes, from the lines ``GOPRE_TEST_RESOURCES=path make test`` wrote
 (tests/conftest.py): the costliest tests by CPU seconds (their own and their child processes'), the
-costliest modules, the cluster chain (the tests that run one after another in one worker), and the
-wall time the suite cannot go below on N cores (its CPU seconds spread evenly, or the chain, whichever
-is longer). CPU seconds hardly move with the machine's load, so a run beside a sweep still plans a diet.
+costliest modules, the chains (the tests that run one after another in one worker: "ray" and
+"servers"; a log written before there were two has one, "cluster"), and the wall time the suite cannot
+go below on N cores (its CPU seconds spread evenly, or the longest chain, whichever is longer). CPU seconds hardly move with the machine's load, so a run beside a sweep still plans a diet.
 
     python tools/test_costs.py /tmp/costs.jsonl [--top 25] [--cores 2]
 """
@@ -23,7 +23,12 @@ class Cost:
     cpu_s: float            # the test's own process
     children_cpu_s: float   # the processes it started and reaped
     worker: str
-    cluster: bool
+    cluster: bool           # in a chain
+    chain: str | None = None  # which one (logs before 2026-12-08: none named, "cluster")
+
+    @property
+    def chain_name(self) -> str | None:
+        return self.chain or ("cluster" if self.cluster else None)
 
     @property
     def total_cpu_s(self) -> float:
@@ -48,17 +53,21 @@ def read_costs(path: Path) -> list[Cost]:
 
 def summary(costs: list[Cost], top: int, cores: int) -> str:
     total = sum(c.total_cpu_s for c in costs)
-    chain = [c for c in costs if c.cluster]
-    chain_wall = sum(c.wall_s for c in chain)
-    floor = max(total / cores, chain_wall)
+    chains: dict[str, list[Cost]] = defaultdict(list)
+    for c in costs:
+        if c.chain_name is not None:
+            chains[c.chain_name].append(c)
+    walls = {name: sum(c.wall_s for c in items) for name, items in chains.items()}
+    floor = max([total / cores, *walls.values()])
     lines = [f"{len(costs)} tests, {total:,.0f} CPU s ({total / 60:.1f} min), {sum(c.wall_s for c in costs):,.0f} wall s "
-             f"summed over tests",
-             f"cluster chain: {len(chain)} tests, {chain_wall:,.0f} wall s, "
-             f"{sum(c.total_cpu_s for c in chain):,.0f} CPU s",
-             f"the suite's floor on {cores} cores: {floor / 60:.1f} min (CPU spread evenly, or the chain if longer)",
-             "", f"costliest {top} tests (CPU s: own + children, wall s):"]
+             f"summed over tests"]
+    for name, items in sorted(chains.items(), key=lambda kv: -walls[kv[0]]):
+        lines.append(f"{name} chain: {len(items)} tests, {walls[name]:,.0f} wall s, "
+                     f"{sum(c.total_cpu_s for c in items):,.0f} CPU s")
+    lines += [f"the suite's floor on {cores} cores: {floor / 60:.1f} min (CPU spread evenly, or the longest chain if "
+              "longer)", "", f"costliest {top} tests (CPU s: own + children, wall s):"]
     for c in sorted(costs, key=lambda c: -c.total_cpu_s)[:top]:
-        chain_mark = " [chain]" if c.cluster else ""
+        chain_mark = f" [{c.chain_name}]" if c.chain_name else ""
         lines.append(f"  {c.total_cpu_s:7.1f} = {c.cpu_s:6.1f} + {c.children_cpu_s:6.1f}  {c.wall_s:7.1f}  {c.test}{chain_mark}")
     by_module: dict[str, list[Cost]] = defaultdict(list)
     for c in costs:
