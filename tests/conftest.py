@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import resource
 import socket
 import time
@@ -91,40 +92,47 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-# `make test` runs the suite in pytest-xdist processes (--dist loadgroup; the Makefile's TEST_WORKERS:
-# a process per core and one more, since the chains below mostly wait on the processes they start).
-# Two kinds of test run one after another, each kind in one process: those that start Ray (a sweep's
-# local Ray, `ray start` nodes, the driver subprocesses they kill: Ray's default node ports, such as
-# its dashboard agent's, are the machine's, and two Rays at once would take the same ones), and those
-# that start servers or job arrays of their own (PostgreSQL, MLflow servers, submitit's local
-# executor: processes and timings that a second such test beside them would disturb). The two chains
-# do not share anything, so they run beside each other.
-RAY_MODULES = {"test_ray_cluster", "test_interrupt"}
-SERVER_MODULES = {"test_tracking_server", "test_shared_tracking", "test_executors"}
-CLUSTER_MODULES = RAY_MODULES | SERVER_MODULES  # either chain (tools/test_costs.py reads the flag)
+# `make test` runs the suite in pytest-xdist processes, one per core. Two kinds of test run one after
+# another, each kind in one process: those that start Ray (a sweep's local Ray, `ray start` nodes, the
+# driver subprocesses they kill: Ray's default node ports, such as its dashboard agent's, are the
+# machine's, and two Ray sweeps at once on two cores miss each other's timings), and those that start
+# servers of their own (PostgreSQL, MLflow servers). The two chains share nothing, so they may run
+# beside each other. The chain is a function of the test's id, and a scheduler of ours sends each
+# chain to one process as one unit: pytest-xdist's own `loadgroup` reads a group from a suffix it
+# writes into the test's id, which pytest 9.2 no longer takes (pytest-xdist issue 1386), so until
+# 2026-12-08 the "chain" was silently spread over both processes (33 and 34 tests); two Ray sweeps
+# at once then lost a round's progress, or printed a job's round after the job had ended (CI,
+# 2026-12-07). tests/test_test_costs.py runs a small suite on two processes and checks the chains.
+RAY_MODULES = {"test_ray_cluster", "test_interrupt", "test_executors"}
+SERVER_MODULES = {"test_tracking_server", "test_shared_tracking"}
 
 
-def _chain(item: pytest.Item) -> str | None:
-    """The chain a test runs in ("ray" or "servers"), None for a test that runs anywhere."""
-    module = item.module.__name__.rsplit(".", 1)[-1] if item.module else ""
-    if module in RAY_MODULES or "ray_session" in getattr(item, "fixturenames", ()):
-        return "ray"
-    if "executor=ray" in item.nodeid or "ray" in item.name.split("[")[0].split("_"):
+def chain_of(nodeid: str) -> str | None:
+    """The chain a test runs in, from its id: "ray" (its module starts Ray, or its name or parameters
+    say ray, or it runs ``executor=ray``), "servers", or None for a test that runs anywhere."""
+    path, _, rest = nodeid.partition("::")
+    module = Path(path).stem
+    name, _, params = rest.partition("[")
+    words = set(name.split("_")) | set(re.split(r"[^A-Za-z0-9]+", params))
+    if module in RAY_MODULES or "executor=ray" in nodeid or "ray" in words:
         return "ray"
     if module in SERVER_MODULES:
         return "servers"
     return None
 
 
-def _starts_a_cluster(item: pytest.Item) -> bool:
-    return _chain(item) is not None
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """With ``--dist loadgroup``: each chain one unit of work (one process, its tests in order), every
+    other test a unit of its own."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
 
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        chain = _chain(item)
-        if chain is not None:
-            item.add_marker(pytest.mark.xdist_group(chain))
+    class ChainScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return chain_of(nodeid) or nodeid
+    return ChainScheduling(config, log)
 
 
 # Where the suite's time goes, measured so that a loaded machine does not hide it:
@@ -153,7 +161,7 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     own_after, children_after = _cpu_seconds()
     line = {"test": item.nodeid, "wall_s": round(wall, 3), "cpu_s": round(own_after - own, 3),
             "children_cpu_s": round(children_after - children, 3),
-            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "cluster": _starts_a_cluster(item),
-            "chain": _chain(item)}
+            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "cluster": chain_of(item.nodeid) is not None,
+            "chain": chain_of(item.nodeid)}
     with open(RESOURCE_LOG, "a") as log:  # one short line per write: the workers' lines do not interleave
         log.write(json.dumps(line) + "\n")

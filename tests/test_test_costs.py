@@ -65,3 +65,33 @@ def test_the_floor_is_the_longest_of_two_chains_and_an_old_log_reads_as_one(tmp_
     old = tmp_path / "old.jsonl"
     old.write_text(_line("r.py::a", 40, 1, 1, True) + "\n" + _line("x.py::d", 1, 2, 0) + "\n")
     assert "cluster chain: 1 tests, 40 wall s" in costs.summary(costs.read_costs(old), top=2, cores=2)
+
+
+def test_each_chain_runs_in_one_process_of_two(tmp_path):
+    """`make test`'s scheduling, on a small suite of two processes: the Ray chain's tests (by module,
+    by a name or parameter that says ray) all in one process, the servers' in one, while tests of
+    their own spread. pytest-xdist's loadgroup alone stopped grouping under pytest 9.2 and nothing
+    failed (tests/conftest.py)."""
+    slow = "import time\ndef sleep():\n    time.sleep(0.4)\n"
+    (tmp_path / "test_ray_cluster.py").write_text(slow + "".join(f"def test_node_{k}():\n    sleep()\n" for k in range(4)))
+    (tmp_path / "test_tracking_server.py").write_text(slow + "".join(f"def test_outage_{k}():\n    sleep()\n" for k in range(4)))
+    (tmp_path / "test_other.py").write_text(
+        slow + "import pytest\n"
+        + "".join(f"def test_plain_{k}():\n    sleep()\n" for k in range(6))
+        + "def test_a_sweep_on_ray_nodes():\n    sleep()\n"
+        + "@pytest.mark.parametrize('executor', ['local', 'ray'])\ndef test_progress(executor):\n    sleep()\n")
+    (tmp_path / "conftest.py").write_text((ROOT / "tests" / "conftest.py").read_text())
+    log = tmp_path / "costs.jsonl"
+    env = {"GOPRE_TEST_RESOURCES": str(log), "PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2", "--dist",
+                           "loadgroup", str(tmp_path)], env=env, cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    lines = costs.read_costs(log)
+    chains = {c.test.split("::", 1)[1]: c.chain_name for c in lines}
+    assert chains["test_a_sweep_on_ray_nodes"] == chains["test_progress[ray]"] == chains["test_node_0"] == "ray"
+    assert chains["test_progress[local]"] is None and chains["test_outage_0"] == "servers"
+    workers = {}
+    for c in lines:
+        workers.setdefault(c.chain_name, set()).add(c.worker)
+    assert len(workers["ray"]) == 1 and len(workers["servers"]) == 1, workers
+    assert len(workers[None]) == 2, workers  # the rest is shared out

@@ -2,7 +2,8 @@
 (tests/conftest.py): the costliest tests by CPU seconds (their own and their child processes'), the
 costliest modules, the chains (the tests that run one after another in one worker: "ray" and
 "servers"; a log written before there were two has one, "cluster"), and the wall time the suite cannot
-go below on N cores (its CPU seconds spread evenly, or the longest chain, whichever is longer). CPU seconds hardly move with the machine's load, so a run beside a sweep still plans a diet.
+go below on N cores (its CPU seconds spread evenly, or the longest chain, whichever is longer). CPU
+seconds hardly move with the machine's load, so a run beside a sweep still plans a diet.
 
     python tools/test_costs.py /tmp/costs.jsonl [--top 25] [--cores 2]
 """
