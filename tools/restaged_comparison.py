@@ -3,7 +3,7 @@ seeds) of a published report's runs (its runs.csv) and of a new sweep's records,
 
     git show 3a7e471:reports/paper/table2_goal_5seeds/runs.csv > /tmp/old.csv
     python tools/restaged_comparison.py /tmp/old.csv \
-        outputs/table2_goal_bonsai --scene bonsai [--seeds 0,1,2,3,4]
+        outputs/table2_goal_bonsai --scene bonsai [--seeds 0,1,2,3,4] [--setting protocol.kind=goal]
 
 Prints a markdown table; the old and the new are different data (the scene was re-staged), so the
 difference is of means, never of pairs. Methods missing on either side are listed with n/a.
@@ -28,15 +28,24 @@ def main(argv=None) -> int:
     parser.add_argument("new", type=Path, help="the new sweep folder (records.parquet) or its runs.csv")
     parser.add_argument("--scene", required=True)
     parser.add_argument("--seeds", default=None, help="only these seeds, e.g. 0,1,2")
+    parser.add_argument("--setting", default=None,
+                        help="only the runs of this setting (the `setting` column of a sweep over settings, "
+                             "e.g. protocol.kind=goal); without it a sweep of several settings is refused")
     args = parser.parse_args(argv)
     old = pd.read_csv(args.old_runs)
     new = (pd.read_csv(args.new) if args.new.suffix == ".csv"
            else pd.read_parquet(args.new / "records.parquet").query("kind == 'final'"))
     frames = []
-    for frame in (old, new):
+    for label, frame in (("old", old), ("new", new)):
         part = frame[(frame["scene"] == args.scene) & (frame["status"] == "FINISHED")]
         if args.seeds:
             part = part[part["seed"].isin([int(s) for s in args.seeds.split(",")])]
+        settings = set(part["setting"].fillna("")) if "setting" in part else {""}
+        if args.setting is not None:
+            part = part[part["setting"] == args.setting]
+        elif len(settings) > 1:
+            raise SystemExit(f"{label}: runs of {len(settings)} settings ({', '.join(sorted(settings))}); "
+                             "name one with --setting")
         frames.append(means(part))
     old_m, new_m = frames
     methods = list(dict.fromkeys(list(old_m.index) + list(new_m.index)))
