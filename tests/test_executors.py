@@ -223,6 +223,10 @@ def test_a_cluster_that_refuses_the_driver_is_one_line_naming_the_token(monkeypa
     for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):  # a GCS address and Ray Client's
         text = connection_problem(address, ConnectionError("Failed to connect"))
         assert "RAY_AUTH_MODE=token" in text and "auth_token" in text and "\n" not in text, address
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")  # the driver takes part: Ray's error is named, both causes said
+    text = connection_problem(f"ray://127.0.0.1:{port}", ConnectionError("ray client connection timeout\nmore"))
+    assert "could not join it (ray client connection timeout)" in text and "not be serving yet" in text
+    assert "auth_token" in text and "\n" not in text
     listener.close()
     text = connection_problem(f"127.0.0.1:{port}", ConnectionError("Failed to connect"))
     assert "no Ray cluster answers" in text

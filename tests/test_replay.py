@@ -106,6 +106,34 @@ def test_images_the_progress_channel_lost_are_taken_from_the_job_folder(tmp_path
         assert steps and all(v == sorted(saved) for v in steps.values())
 
 
+
+def test_a_run_replayed_within_the_sweep_has_the_images_its_lost_run_received(tmp_path, monkeypatch):
+    """The server takes a job's rounds and images live, then refuses its end; the sweep's own replay
+    makes a new run, which must get every round's images from the job folder (they went to the lost
+    run, ended KILLED). Found 2026-12-08: the tracker counted the lost run's images as the new run's,
+    and a replayed run came without the rounds imaged before an outage (tests/test_tracking_server.py
+    saw it whenever the images beat the outage)."""
+    from pipeline.experiment import tracking
+    original = tracking.MlflowTracker._complete
+    refused = set()
+
+    def away_once(self, run_id, logged, job, outcome, live):
+        if job.config_hash not in refused:  # the first end of each job: the server is away
+            refused.add(job.config_hash)
+            raise ConnectionError("tracking server unreachable")
+        return original(self, run_id, logged, job, outcome, live)
+    monkeypatch.setattr(tracking.MlflowTracker, "_complete", away_once)
+    out = tmp_path / "s"
+    summary = run_sweep(composed([*SWEEP, "tracking=mlflow", "tracking.replay_wait_s=30", f"output_dir={out}"]))
+    assert summary.finished == 2 and summary.untracked == [] and len(refused) == 2
+    client, every, _ = mlflow_runs(out)
+    replayed = [r for r in every if r.info.status == "FINISHED"]
+    assert len(replayed) == 2 and sorted(r.info.status for r in every) == ["FINISHED", "FINISHED", "KILLED", "KILLED"]
+    for run in replayed:
+        saved = SweepFolder(out).job(run.data.tags["config_hash"]).saved_round_images()
+        steps = image_steps(client, run)
+        assert saved and steps and all(v == sorted(saved) for v in steps.values()), (steps, sorted(saved))
+
 class Flaky:
     """A tracker whose server answers only from the ``answers_from``-th question on."""
 

@@ -267,10 +267,13 @@ class MlflowTracker:
         for key, png in images.items():  # MLflow's image series per step
             self.client.log_image(run_id, Image.open(io.BytesIO(png)), key=key, step=step)
 
-    def _log_saved_round_images(self, run_id: str, job: Job) -> int:
-        """The round images the job saved in its folder (``JobFolder.round_images``) that MLflow did
-        not receive live (a lost progress channel, a replay); how many steps were taken from there."""
-        received = self.imaged.pop(job.config_hash, set())
+    def _log_saved_round_images(self, run_id: str, job: Job, live: bool) -> int:
+        """The round images the job saved in its folder (``JobFolder.round_images``) that this run did
+        not receive live (a lost progress channel, a replay); how many steps were taken from there.
+        A run that is not the live one (a replay's) received none: what was imaged live went to the
+        run the outage left open, which ends KILLED."""
+        imaged_live = self.imaged.pop(job.config_hash, set())
+        received = imaged_live if live else set()
         saved = SweepFolder(Path(self.output_dir)).job(job.config_hash).saved_round_images()
         missing = {step: files for step, files in saved.items() if step not in received}
         for step, files in sorted(missing.items()):
@@ -306,7 +309,7 @@ class MlflowTracker:
             self.client.set_tag(run_id, key, value)
         if outcome.finished:
             self._log_metrics(run_id, self._metrics(job, outcome, logged))
-            taken = self._log_saved_round_images(run_id, job)
+            taken = self._log_saved_round_images(run_id, job, live)
             if taken and live:  # a replay takes them all from there: nothing to say
                 console().info(f"{job.label}: the round images of {taken} round(s) taken from its job folder "
                                "(MLflow did not receive them while it ran)")

@@ -331,9 +331,11 @@ def connection_problem(address: str, err: BaseException) -> str:
             listening = False
     if listening and os.environ.get("RAY_AUTH_MODE", "").lower() != "token":
         return "executor.address: " + AUTH_HINT.format(address=address)
-    if listening:
-        return (f"executor.address: the Ray cluster at {address} refused this driver with RAY_AUTH_MODE=token: "
-                f"its token differs from the head's (RAY_AUTH_TOKEN or ~/.ray/auth_token)")
+    if listening:  # a token that differs, or a head whose Ray Client server is not serving yet: Ray says the same
+        return (f"executor.address: something listens at {address} but Ray could not join it "
+                f"({str(err).splitlines()[0][:150]}): a cluster started seconds ago may not be serving yet (try "
+                f"again); else, with RAY_AUTH_MODE=token, its token differs from the head's (RAY_AUTH_TOKEN or "
+                f"~/.ray/auth_token)")
     return (f"executor.address: no Ray cluster answers at {address} ({str(err).splitlines()[0][:150]}): start "
             f"one (ray start --head --port=...) or use executor.address=null for a local Ray")
 
