@@ -139,7 +139,7 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
 # GOPRE_TEST_RESOURCES=path appends one JSON line per test (setup, call and teardown together): its
 # wall seconds, the CPU seconds of its process and of the processes it started and reaped (a sweep's
 # driver, servers; a process left running, such as a Ray node's workers killed with it, is not
-# counted), its xdist worker and whether it is in the cluster chain. ``python tools/test_costs.py
+# counted), its xdist worker and the chain it ran in. ``python tools/test_costs.py
 # path`` sums them. CPU seconds hardly depend on the load beside the run; wall seconds do.
 RESOURCE_LOG = os.environ.get("GOPRE_TEST_RESOURCES", "").strip()
 
@@ -161,7 +161,6 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     own_after, children_after = _cpu_seconds()
     line = {"test": item.nodeid, "wall_s": round(wall, 3), "cpu_s": round(own_after - own, 3),
             "children_cpu_s": round(children_after - children, 3),
-            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "cluster": chain_of(item.nodeid) is not None,
-            "chain": chain_of(item.nodeid)}
+            "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"), "chain": chain_of(item.nodeid)}
     with open(RESOURCE_LOG, "a") as log:  # one short line per write: the workers' lines do not interleave
         log.write(json.dumps(line) + "\n")

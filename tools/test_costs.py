@@ -24,8 +24,8 @@ class Cost:
     cpu_s: float            # the test's own process
     children_cpu_s: float   # the processes it started and reaped
     worker: str
-    cluster: bool           # in a chain
-    chain: str | None = None  # which one (logs before 2026-12-08: none named, "cluster")
+    chain: str | None = None  # the chain it ran in, None for none
+    cluster: bool = False     # logs before 2026-12-08 flag a test of their one chain instead
 
     @property
     def chain_name(self) -> str | None:
