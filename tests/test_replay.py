@@ -35,6 +35,14 @@ def image_steps(client, run) -> dict[str, list[int]]:
     return {k: sorted(v) for k, v in steps.items()}
 
 
+def assert_every_saved_round_imaged(client, out, runs) -> None:
+    """Each run has, in every image series, exactly the rounds its job saved in its folder."""
+    for run in runs:
+        saved = SweepFolder(out).job(run.data.tags["config_hash"]).saved_round_images()
+        steps = image_steps(client, run)
+        assert saved and steps and all(v == sorted(saved) for v in steps.values()), (steps, sorted(saved))
+
+
 def test_every_round_keeps_its_images_in_the_job_folder(tmp_path):
     out = tmp_path / "s"
     summary = run_sweep(composed([*SWEEP, "tracking=mlflow", f"output_dir={out}"]))
@@ -78,9 +86,7 @@ def test_a_launch_replays_the_finished_jobs_the_store_does_not_have_with_parent_
         assert run.data.tags["worker.host"] == row["host"] and run.data.tags["worker.cpu"] == row["cpu"]
         assert run.data.tags["worker.code_version"] == row["worker_code_version"]
         assert records.loc[run.data.tags["config_hash"], "run_id"] == run.info.run_id  # the records name it
-        saved = SweepFolder(out).job(run.data.tags["config_hash"]).saved_round_images()
-        steps = image_steps(client, run)
-        assert steps and all(v == sorted(saved) for v in steps.values()), (steps, sorted(saved))
+    assert_every_saved_round_imaged(client, out, runs)
     capsys.readouterr()
     third = run_sweep(composed([*SWEEP, "tracking=mlflow", f"output_dir={out}"]))
     assert third.finished == 0 and "were not in" not in "".join(capsys.readouterr())  # nothing left to replay
@@ -100,11 +106,7 @@ def test_images_the_progress_channel_lost_are_taken_from_the_job_folder(tmp_path
     said = capsys.readouterr()
     assert said.out.count("taken from its job folder") + said.err.count("taken from its job folder") == 2
     client, runs, _ = mlflow_runs(out)
-    for run in runs:
-        saved = SweepFolder(out).job(run.data.tags["config_hash"]).saved_round_images()
-        steps = image_steps(client, run)
-        assert steps and all(v == sorted(saved) for v in steps.values())
-
+    assert_every_saved_round_imaged(client, out, runs)
 
 
 def test_a_run_replayed_within_the_sweep_has_the_images_its_lost_run_received(tmp_path, monkeypatch):
@@ -129,10 +131,8 @@ def test_a_run_replayed_within_the_sweep_has_the_images_its_lost_run_received(tm
     client, every, _ = mlflow_runs(out)
     replayed = [r for r in every if r.info.status == "FINISHED"]
     assert len(replayed) == 2 and sorted(r.info.status for r in every) == ["FINISHED", "FINISHED", "KILLED", "KILLED"]
-    for run in replayed:
-        saved = SweepFolder(out).job(run.data.tags["config_hash"]).saved_round_images()
-        steps = image_steps(client, run)
-        assert saved and steps and all(v == sorted(saved) for v in steps.values()), (steps, sorted(saved))
+    assert_every_saved_round_imaged(client, out, replayed)
+
 
 class Flaky:
     """A tracker whose server answers only from the ``answers_from``-th question on."""
